@@ -1,0 +1,1 @@
+"""Message and bag conversion: ROS messages <-> NumPy, bags, synthetic sequences, export."""

@@ -1,0 +1,198 @@
+"""sensor_msgs/PointCloud2 <-> NumPy.
+
+Reading is zero-copy: ``np.frombuffer`` over ``msg.data`` with a structured dtype built from
+``fields`` (offsets, ``point_step`` padding, ``row_step`` padding, ``count > 1``, big-endian).
+Writing packs one contiguous structured array and hands its bytes to the message factory (which
+uses the fast ``array('B').frombytes`` path for rclpy messages).
+
+Every malformed message raises :class:`~nrsfm_ros.io.errors.MessageError` naming the field.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from .errors import MessageError
+from .msgtypes import MsgFactory
+
+MSGTYPE = 'sensor_msgs/msg/PointCloud2'
+
+# PointField datatype constants -> NumPy type (without byte order).
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+_DATATYPES: dict[int, str] = {
+    INT8: 'i1', UINT8: 'u1', INT16: 'i2', UINT16: 'u2',
+    INT32: 'i4', UINT32: 'u4', FLOAT32: 'f4', FLOAT64: 'f8',
+}
+_FROM_NUMPY: dict[str, int] = {v: k for k, v in _DATATYPES.items()}
+
+
+def dtype_from_fields(fields: Sequence[Any], point_step: int, is_bigendian: bool = False,
+                      ) -> np.dtype:
+    """Structured dtype (itemsize ``point_step``) for a list of PointField-like objects."""
+    if point_step <= 0:
+        raise MessageError('point_step', point_step, 'must be positive')
+    order = '>' if is_bigendian else '<'
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    for i, f in enumerate(fields):
+        name = str(f.name)
+        if not name:
+            raise MessageError(f'fields[{i}].name', name, 'empty field name')
+        if name in names:
+            raise MessageError(f'fields[{i}].name', name, 'duplicate field name')
+        if int(f.datatype) not in _DATATYPES:
+            raise MessageError(f'fields[{i}].datatype', int(f.datatype),
+                               'unknown PointField datatype (expected 1..8)')
+        count = int(f.count)
+        if count < 1:
+            # count 0 is seen in the wild and means 1.
+            count = 1
+        base = np.dtype(order + _DATATYPES[int(f.datatype)])
+        size = base.itemsize * count
+        offset = int(f.offset)
+        if offset < 0 or offset + size > point_step:
+            raise MessageError(f'fields[{i}].offset', offset,
+                               f'field {name!r} ({size} bytes) does not fit point_step '
+                               f'{point_step}')
+        names.append(name)
+        formats.append(base if count == 1 else (base, (count,)))
+        offsets.append(offset)
+    try:
+        return np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
+                         'itemsize': point_step})
+    except ValueError as err:  # overlapping fields
+        raise MessageError('fields', names, f'fields overlap: {err}') from err
+
+
+def read_points(msg: Any) -> np.ndarray:
+    """Structured array view of a PointCloud2, shape (height, width); no copy where possible."""
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    if height < 0 or width < 0:
+        raise MessageError('height' if height < 0 else 'width', min(height, width),
+                           'negative size')
+    dtype = dtype_from_fields(msg.fields, point_step, bool(msg.is_bigendian))
+    if row_step < width * point_step:
+        raise MessageError('row_step', row_step,
+                           f'smaller than width*point_step = {width * point_step}')
+    buf = np.frombuffer(msg.data, dtype=np.uint8) if len(msg.data) else np.zeros(0, np.uint8)
+    need = row_step * height
+    if buf.size < need:
+        raise MessageError('data', f'{buf.size} bytes',
+                           f'expected row_step*height = {need} bytes')
+    if height * width == 0:
+        return np.zeros((height, width), dtype=dtype)
+    # Zero-copy view honouring row padding (read-only when the buffer is).
+    return np.ndarray(shape=(height, width), dtype=dtype, buffer=buf, offset=0,
+                      strides=(row_step, point_step))
+
+
+def field_names(msg: Any) -> list[str]:
+    return [str(f.name) for f in msg.fields]
+
+
+def read_fields(msg: Any, names: Sequence[str], dtype: Any = np.float32,
+                skip_nans: bool = False) -> np.ndarray:
+    """The named scalar fields as one (N, len(names)) array in native byte order.
+
+    ``skip_nans`` drops points with a NaN in any requested field.  Raises MessageError if a
+    field is missing.
+    """
+    points = read_points(msg).reshape(-1)
+    present = set(points.dtype.names or ())
+    for name in names:
+        if name not in present:
+            raise MessageError('fields', sorted(present), f'missing required field {name!r}')
+    out = np.empty((points.shape[0], len(names)), dtype=dtype)
+    for j, name in enumerate(names):
+        col = points[name]
+        if col.ndim != 1:
+            raise MessageError(f'fields[{name}].count', col.shape[1:], 'expected count 1')
+        out[:, j] = col
+    if skip_nans and out.size:
+        out = out[~np.isnan(out).any(axis=1)]
+    return out
+
+
+def read_xyz(msg: Any, skip_nans: bool = True) -> np.ndarray:
+    """(N, 3) float64 x, y, z."""
+    return read_fields(msg, ('x', 'y', 'z'), np.float64, skip_nans)
+
+
+def has_fields(msg: Any, names: Sequence[str]) -> bool:
+    present = set(field_names(msg))
+    return all(n in present for n in names)
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 r, g, b -> (N,) float32 holding 0x00RRGGBB bits (the PCL convention)."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 2 or rgb.shape[1] != 3:
+        raise ValueError(f'rgb: expected shape (N, 3), got {rgb.shape}')
+    c = rgb.astype(np.uint32)
+    return ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """(N,) float32 packed rgb -> (N, 3) uint8."""
+    bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
+    return np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1).astype(np.uint8)
+
+
+def pack(columns: Mapping[str, np.ndarray], shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Columns (name -> (N,) array) -> one packed structured array (N,) in their dtypes."""
+    if not columns:
+        raise ValueError('columns: at least one field is needed')
+    arrays = {k: np.asarray(v) for k, v in columns.items()}
+    n = {k: v.shape[0] for k, v in arrays.items()}
+    if len(set(n.values())) != 1:
+        raise ValueError(f'columns: all fields need the same length, got {n}')
+    for k, v in arrays.items():
+        if v.ndim != 1:
+            raise ValueError(f'columns[{k!r}]: expected a 1-D array, got shape {v.shape}')
+        if v.dtype.str[1:] not in _FROM_NUMPY:
+            raise ValueError(f'columns[{k!r}]: dtype {v.dtype} has no PointField datatype')
+    dtype = np.dtype([(k, v.dtype.newbyteorder('<')) for k, v in arrays.items()])
+    out = np.empty(next(iter(n.values())), dtype=dtype)
+    for k, v in arrays.items():
+        out[k] = v
+    return out
+
+
+def to_msg(points: np.ndarray | Mapping[str, np.ndarray], factory: MsgFactory, stamp_ns: int,
+           frame_id: str, height: int = 1, is_dense: bool | None = None) -> Any:
+    """Build a PointCloud2 from a structured array or a mapping of columns.
+
+    ``height > 1`` makes an organised cloud (N must equal height*width).  ``is_dense`` defaults to
+    "no NaN in any float field".
+    """
+    if not isinstance(points, np.ndarray):
+        points = pack(points)
+    if points.dtype.names is None:
+        raise ValueError('points: expected a structured array or a mapping of columns')
+    points = np.ascontiguousarray(points.reshape(-1))
+    n = points.shape[0]
+    if height < 1 or n % height:
+        raise ValueError(f'height: {height} does not divide the number of points {n}')
+    width = n // height
+    fields = []
+    for name in points.dtype.names:
+        ftype, offset = points.dtype.fields[name][:2]
+        base, count = (ftype.base, int(np.prod(ftype.shape))) if ftype.shape else (ftype, 1)
+        if base.byteorder == '>':
+            raise ValueError(f'points[{name!r}]: write little-endian data')
+        fields.append(factory.make('sensor_msgs/msg/PointField', name=name, offset=int(offset),
+                                   datatype=_FROM_NUMPY[base.str[1:]], count=count))
+    if is_dense is None:
+        is_dense = True
+        for name in points.dtype.names:
+            if points.dtype[name].kind == 'f' and np.isnan(points[name]).any():
+                is_dense = False
+                break
+    return factory.make(
+        MSGTYPE, header=factory.header(stamp_ns, frame_id), height=height, width=width,
+        fields=fields, is_bigendian=False, point_step=points.dtype.itemsize,
+        row_step=points.dtype.itemsize * width, data=points.view(np.uint8), is_dense=is_dense)

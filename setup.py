@@ -1,0 +1,34 @@
+"""ament_python build of nrsfm_ros: works with colcon and with plain pip."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'nrsfm_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
+    ],
+    install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
+                      'PyYAML'],
+    zip_safe=True,
+    maintainer='nrsfm_ros maintainers',
+    maintainer_email='maintainers@nrsfm-ros.invalid',
+    description='Dense monocular NRSfM, scene flow and point set registration for ROS 2',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'nrsfm-ros = nrsfm_ros.cli:main',
+            'tracker = nrsfm_ros.nodes.tracker:main',
+            'reconstructor = nrsfm_ros.nodes.reconstructor:main',
+            'registrar = nrsfm_ros.nodes.registrar:main',
+            'scene_flow = nrsfm_ros.nodes.scene_flow:main',
+        ],
+    },
+)
