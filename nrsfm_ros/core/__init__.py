@@ -1,0 +1,1 @@
+"""Pure algorithms on NumPy arrays: no ROS, no files, no printing, no globals."""

@@ -1,0 +1,123 @@
+"""Accuracy metrics shared by tests, benchmarks and the demo summary.
+
+Two e3D conventions exist in the NRSfM literature (see ../shared/data/README.md); every report
+says which one it uses:
+
+* **A** (:func:`e3d_normalized`): Akhter / Dai et al. normalised mean 3D error, one global
+  orthogonal alignment, mean Euclidean point distance divided by the ground-truth spread.
+* **B** (:func:`e3d_frobenius`): mean over frames of ||S_f - S_f^gt||_F / ||S_f^gt||_F after
+  centring, aligned globally or per frame (orthogonal, reflection allowed; optional scale).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check_shapes(S: np.ndarray, S_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    S = np.asarray(S, dtype=np.float64)
+    S_gt = np.asarray(S_gt, dtype=np.float64)
+    if S.shape != S_gt.shape or S.ndim != 3 or S.shape[2] != 3:
+        raise ValueError(f'S: expected shape (F, P, 3) equal to S_gt {S_gt.shape}, got {S.shape}')
+    return S, S_gt
+
+
+def orthogonal_procrustes(A: np.ndarray, B: np.ndarray, reflection: bool = True) -> np.ndarray:
+    """R (d x d) minimising ||A R - B||_F for row-vector point sets A, B (N x d)."""
+    U, _, Vt = np.linalg.svd(A.T @ B)
+    R = U @ Vt
+    if not reflection and np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+def batched_procrustes(A: np.ndarray, B: np.ndarray, reflection: bool = True,
+                       scale: bool = False) -> np.ndarray:
+    """Align each A[f] (P x 3) onto B[f]; returns the aligned stack.  Inputs must be centred."""
+    U, sig, Vt = np.linalg.svd(np.einsum('fpi,fpj->fij', A, B))
+    R = U @ Vt
+    if not reflection:
+        d = np.sign(np.linalg.det(R))
+        U[:, :, -1] *= d[:, None]
+        sig[:, -1] *= d
+        R = U @ Vt
+    out = A @ R
+    if scale:
+        denom = np.einsum('fpi,fpi->f', A, A)
+        s = sig.sum(axis=1) / np.maximum(denom, 1e-300)
+        out = out * s[:, None, None]
+    return out
+
+
+def e3d_frobenius(S: np.ndarray, S_gt: np.ndarray, align: str = 'frame',
+                  scale: bool = False) -> float:
+    """Metric B: mean_f ||S_f - S_f^gt||_F / ||S_f^gt||_F after centring and alignment.
+
+    ``align``: 'frame' (per-frame orthogonal Procrustes), 'global' (one rotation for the whole
+    sequence) or 'none'.  ``scale=True`` also fits a per-frame (or global) scale, which is the
+    fair choice when the reconstruction's metric scale is unknown.
+    """
+    S, S_gt = _check_shapes(S, S_gt)
+    A = S - S.mean(axis=1, keepdims=True)
+    B = S_gt - S_gt.mean(axis=1, keepdims=True)
+    if align == 'frame':
+        A = batched_procrustes(A, B, scale=scale)
+    elif align == 'global':
+        R = orthogonal_procrustes(A.reshape(-1, 3), B.reshape(-1, 3))
+        A = A @ R
+        if scale:
+            A *= np.sum(A * B) / max(np.sum(A * A), 1e-300)
+    elif align != 'none':
+        raise ValueError(f"align={align!r}: expected 'frame', 'global' or 'none'")
+    num = np.linalg.norm((A - B).reshape(A.shape[0], -1), axis=1)
+    den = np.linalg.norm(B.reshape(B.shape[0], -1), axis=1)
+    return float(np.mean(num / np.maximum(den, 1e-300)))
+
+
+def e3d_normalized(S: np.ndarray, S_gt: np.ndarray) -> float:
+    """Metric A (Akhter et al.): one global orthogonal alignment; mean point distance / spread.
+
+    The scale s is the mean over frames and axes of the ground truth's per-axis standard
+    deviation; each frame is centred; one 3x3 orthogonal matrix (reflection allowed) is fitted
+    over the whole sequence by least squares.
+    """
+    S, S_gt = _check_shapes(S, S_gt)
+    s = float(np.mean(np.std(S_gt, axis=1)))
+    A = (S - S.mean(axis=1, keepdims=True)) / s
+    B = (S_gt - S_gt.mean(axis=1, keepdims=True)) / s
+    R = orthogonal_procrustes(A.reshape(-1, 3), B.reshape(-1, 3))
+    A = A @ R
+    return float(np.mean(np.linalg.norm(A - B, axis=2)))
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a 3x3 rotation in degrees."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def rotation_error_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    return rotation_angle_deg(np.asarray(R_est).T @ np.asarray(R_true))
+
+
+def relative_epe(v: np.ndarray, v_gt: np.ndarray) -> float:
+    """Scene flow: mean ||v - v_gt|| / mean ||v_gt|| (scale-normalised end-point error)."""
+    v = np.asarray(v, dtype=np.float64)
+    v_gt = np.asarray(v_gt, dtype=np.float64)
+    if v.shape != v_gt.shape:
+        raise ValueError(f'v: shape {v.shape} differs from v_gt {v_gt.shape}')
+    return float(np.mean(np.linalg.norm(v - v_gt, axis=-1))
+                 / max(np.mean(np.linalg.norm(v_gt, axis=-1)), 1e-300))
+
+
+def track_error_px(W: np.ndarray, W_gt: np.ndarray, V: np.ndarray | None = None) -> float:
+    """Mean 2D end-point error of tracks W (2F x P) against W_gt, over visible entries."""
+    W = np.asarray(W, dtype=np.float64)
+    W_gt = np.asarray(W_gt, dtype=np.float64)
+    if W.shape != W_gt.shape:
+        raise ValueError(f'W: shape {W.shape} differs from W_gt {W_gt.shape}')
+    d = np.hypot(W[0::2] - W_gt[0::2], W[1::2] - W_gt[1::2])
+    if V is not None:
+        m = np.asarray(V) > 0.5
+        return float(d[m].mean()) if m.any() else float('nan')
+    return float(d.mean())

@@ -1,0 +1,28 @@
+"""NRSfM methods by name: ``reconstruct(W, V, method=...)`` and the sliding window."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .factorization import low_rank, rigid
+from .result import NRSfMResult, check_tracks
+from .window import WindowNRSfM
+
+METHODS: dict[str, Callable[..., NRSfMResult]] = {
+    'rigid': rigid,
+    'lowrank': low_rank,
+}
+
+
+def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'lowrank',
+                **params: Any) -> NRSfMResult:
+    """Run the named method on tracks W (2F, P) with optional visibility V (F, P)."""
+    if method not in METHODS:
+        raise ValueError(f'method={method!r}: expected one of {sorted(METHODS)}')
+    return METHODS[method](W, V, **params)
+
+
+__all__ = ['METHODS', 'NRSfMResult', 'WindowNRSfM', 'check_tracks', 'low_rank', 'reconstruct',
+           'rigid']
