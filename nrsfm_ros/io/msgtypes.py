@@ -44,7 +44,11 @@ class RosbagsFactory(MsgFactory):
         self.typestore = typestore
 
     def make(self, msgtype: str, **fields: Any) -> Any:
+        """Like the rclpy constructors: fields not given take their ROS default values."""
         cls = self.typestore.types[msgtype]
+        for name, (nodetype, desc) in self.typestore.fielddefs[msgtype][1]:
+            if name not in fields:
+                fields[name] = self._default(int(nodetype), desc)
         for key in _BYTE_FIELDS & fields.keys():
             value = fields[key]
             if not isinstance(value, np.ndarray) or value.dtype != np.uint8:
@@ -52,6 +56,26 @@ class RosbagsFactory(MsgFactory):
             elif value.ndim != 1:
                 fields[key] = value.reshape(-1)
         return cls(**fields)
+
+    _NUMPY_BASE = {'bool': np.bool_, 'int8': np.int8, 'uint8': np.uint8, 'byte': np.uint8,
+                   'char': np.uint8, 'int16': np.int16, 'uint16': np.uint16,
+                   'int32': np.int32, 'uint32': np.uint32, 'int64': np.int64,
+                   'uint64': np.uint64, 'float32': np.float32, 'float64': np.float64}
+
+    def _default(self, nodetype: int, desc: Any) -> Any:
+        # rosbags Nodetype: BASE=1, NAME=2, ARRAY=3, SEQUENCE=4
+        if nodetype == 1:
+            base = desc[0]
+            return '' if base in ('string', 'wstring') else False if base == 'bool' else \
+                0.0 if base.startswith('float') else 0
+        if nodetype == 2:
+            return self.make(desc)
+        (sub_type, sub_desc), length = desc
+        if int(sub_type) == 1 and sub_desc[0] in self._NUMPY_BASE:
+            return np.zeros(length if nodetype == 3 else 0, dtype=self._NUMPY_BASE[sub_desc[0]])
+        if nodetype == 3:
+            return [self._default(int(sub_type), sub_desc) for _ in range(length)]
+        return []
 
 
 class RclpyFactory(MsgFactory):

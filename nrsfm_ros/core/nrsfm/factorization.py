@@ -78,23 +78,32 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None) -> NRSfMResult:
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     F, P = V.shape
-    Wf = impute_low_rank(W, V, 3)
-    Wc, t = _centre(Wf, np.ones_like(V))
-    U, s, Vt = np.linalg.svd(Wc, full_matrices=False)
+    # factorise the fully visible tracks when there are enough (imputing a track seen in few
+    # frames gives garbage that corrupts the SVD); otherwise impute the missing entries
+    full = V.min(axis=0) >= 0.5
+    if full.sum() >= max(8, P // 5):
+        Wsub = W[:, full]
+    else:
+        Wsub = impute_low_rank(W, V, 3)
+    Wc_sub, t = _centre(Wsub, np.ones((F, Wsub.shape[1])))
+    U, s, Vt = np.linalg.svd(Wc_sub, full_matrices=False)
     M_hat = U[:, :3] * np.sqrt(s[:3])
-    S_hat = np.sqrt(s[:3])[:, None] * Vt[:3]
     A = metric_upgrade(M_hat)
     R2, scale = scaled_orthonormal((M_hat @ A).reshape(F, 2, 3))
-    S0 = np.linalg.solve(A, S_hat)  # 3 x P
-    # refine the shared shape and the cameras jointly a few times (exact for noise-free data)
-    for _ in range(3):
+    Wf = W.reshape(F, 2, P)
+    # refine shape, cameras and translations jointly (exact for noise-free data)
+    for _ in range(4):
+        Wc = (Wf - t[:, :, None]).reshape(2 * F, P)
         S0 = _solve_rigid_shape(Wc, V, R2, scale)
         R2, scale = _procrustes_cameras(Wc, V, np.broadcast_to(S0, (F, 3, P)))
+        pred = np.einsum('fki,ip->fkp', R2 * scale[:, None, None], S0)
+        t = ((Wf - pred) * V[:, None, :]).sum(axis=2) / V.sum(axis=1)[:, None]
+    Wc = (Wf - t[:, :, None]).reshape(2 * F, P)
     R = complete_rotations(R2)
     S = np.einsum('fij,jp->fpi', R, S0)
     res = _residual(Wc, V, R2, scale, np.broadcast_to(S0, (F, 3, P)))
     return NRSfMResult(S=S, R=R, scale=scale, t=t, method='rigid', rank=1, residual_px=res,
-                       iterations=3, converged=True, seconds=time.perf_counter() - t0)
+                       iterations=4, converged=True, seconds=time.perf_counter() - t0)
 
 
 def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.ndarray
@@ -102,7 +111,9 @@ def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.
     sR = R2 * scale[:, None, None]  # F x 2 x 3
     # normal equations per point: sum_f v_fp (sR_f^T sR_f) S_p = sum_f v_fp sR_f^T w_fp
     G = np.einsum('fki,fkj->fij', sR, sR)
-    A = np.einsum('fp,fij->pij', V, G) + 1e-9 * np.eye(3)
+    # a small ridge keeps tracks seen in too few frames near the centroid instead of arbitrary
+    ridge = 1e-9 * float(np.trace(G.mean(axis=0)))
+    A = np.einsum('fp,fij->pij', V, G) + ridge * np.eye(3)
     Wf = Wc.reshape(-1, 2, Wc.shape[1])
     b = np.einsum('fp,fki,fkp->pi', V, sR, Wf)
     return np.linalg.solve(A, b[..., None])[..., 0].T

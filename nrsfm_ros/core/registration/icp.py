@@ -1,0 +1,155 @@
+"""Rigid ICP, point-to-point and point-to-plane, with a KD-tree (SciPy cKDTree)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """T_target_source (4x4) maps source points into the target frame; ``aligned`` (N, 3) is the
+    source after the transform; ``displacement`` (N, 3) aligned - source; ``correspondences``
+    (N,) target index per source point (-1 where rejected); ``residual`` RMSE of accepted pairs;
+    ``fitness`` fraction of source points with an accepted pair."""
+
+    T_target_source: np.ndarray
+    aligned: np.ndarray
+    displacement: np.ndarray
+    correspondences: np.ndarray
+    iterations: int
+    converged: bool
+    residual: float
+    fitness: float
+    seconds: float
+    method: str
+
+
+def check_points(name: str, X: np.ndarray, min_points: int = 3) -> np.ndarray:
+    X = np.asarray(X, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f'{name}: expected shape (N, 3), got {X.shape}')
+    if X.shape[0] < min_points:
+        raise ValueError(f'{name}: need at least {min_points} points, got {X.shape[0]}')
+    if not np.isfinite(X).all():
+        raise ValueError(f'{name}: contains NaN or inf; drop invalid points first')
+    return X
+
+
+def kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """4x4 rigid T minimising sum w ||T A - B||^2 (rows are points)."""
+    w = np.ones(A.shape[0]) if w is None else w
+    ws = w / max(w.sum(), 1e-300)
+    ca, cb = ws @ A, ws @ B
+    H = (A - ca).T @ ((B - cb) * ws[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cb - R @ ca
+    return T
+
+
+def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None) -> np.ndarray:
+    """Unit normals by PCA of each point's k nearest neighbours (batched eigh)."""
+    tree = cKDTree(X) if tree is None else tree
+    k = min(k, X.shape[0])
+    _, idx = tree.query(X, k=k)
+    nb = X[idx] - X[idx].mean(axis=1, keepdims=True)
+    cov = np.einsum('nki,nkj->nij', nb, nb)
+    return np.linalg.eigh(cov)[1][:, :, 0]
+
+
+def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+    return X @ T[:3, :3].T + T[:3, 3]
+
+
+def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
+        max_iterations: int = 50, tolerance: float = 1e-6,
+        max_correspondence_distance: float = np.inf, init: str | np.ndarray = 'centroid',
+        trim: float = 0.9) -> RegistrationResult:
+    """Align ``source`` (N, 3) to ``target`` (M, 3).
+
+    ``init``: 'centroid' (translate centroids together), 'identity', or a 4x4 T_target_source.
+    ``trim``: fraction of closest pairs kept each iteration (robust to partial overlap).
+    """
+    t0 = time.perf_counter()
+    if method not in ('point_to_point', 'point_to_plane'):
+        raise ValueError(f"method={method!r}: expected 'point_to_point' or 'point_to_plane'")
+    if not 0.1 <= trim <= 1.0:
+        raise ValueError(f'trim: expected in [0.1, 1], got {trim}')
+    src = check_points('source', source)
+    dst = check_points('target', target)
+    if isinstance(init, str):
+        T = np.eye(4)
+        if init == 'centroid':
+            T[:3, 3] = dst.mean(axis=0) - src.mean(axis=0)
+        elif init != 'identity':
+            raise ValueError(f"init={init!r}: expected 'centroid', 'identity' or a 4x4 array")
+    else:
+        T = np.asarray(init, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f'init: expected a 4x4 transform, got shape {T.shape}')
+    tree = cKDTree(dst)
+    normals = estimate_normals(dst, tree=tree) if method == 'point_to_plane' else None
+    prev = np.inf
+    converged = False
+    it = 0
+    keep = np.ones(src.shape[0], bool)
+    idx = np.zeros(src.shape[0], np.intp)
+    rmse = np.inf
+    for it in range(1, max_iterations + 1):
+        moved = _apply(T, src)
+        dist, idx = tree.query(moved)
+        keep = dist <= max_correspondence_distance
+        if trim < 1.0 and keep.sum() > 10:
+            cutoff = np.quantile(dist[keep], trim)
+            keep &= dist <= cutoff
+        if keep.sum() < 3:
+            break
+        rmse = float(np.sqrt(np.mean(dist[keep] ** 2)))
+        if method == 'point_to_point':
+            dT = kabsch(moved[keep], dst[idx[keep]])
+        else:
+            assert normals is not None
+            dT = _point_to_plane_step(moved[keep], dst[idx[keep]], normals[idx[keep]])
+        T = dT @ T
+        if abs(prev - rmse) <= tolerance * max(rmse, 1e-12):
+            converged = True
+            break
+        prev = rmse
+    aligned = _apply(T, src)
+    corr = np.where(keep, idx, -1)
+    return RegistrationResult(T_target_source=T, aligned=aligned, displacement=aligned - src,
+                              correspondences=corr, iterations=it, converged=converged,
+                              residual=rmse, fitness=float(keep.mean()),
+                              seconds=time.perf_counter() - t0, method=f'icp-{method}')
+
+
+def _point_to_plane_step(A: np.ndarray, B: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Linearised point-to-plane least squares (small-angle), one Gauss-Newton step."""
+    J = np.hstack([np.cross(A, n), n])
+    r = np.einsum('ij,ij->i', B - A, n)
+    x = np.linalg.lstsq(J, r, rcond=None)[0]
+    wx, wy, wz = x[:3]
+    Rm = np.array([[1, -wz, wy], [wz, 1, -wx], [-wy, wx, 1]])
+    U, _, Vt = np.linalg.svd(Rm)
+    T = np.eye(4)
+    T[:3, :3] = U @ Vt
+    T[:3, 3] = x[3:]
+    return T
+
+
+METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
+           'icp-point-to-plane': 'point_to_plane'}
+
+
+def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: object
+             ) -> RegistrationResult:
+    """Register by method name (see METHODS)."""
+    if method not in METHODS:
+        raise ValueError(f'method={method!r}: expected one of {sorted(METHODS)}')
+    return icp(source, target, method=METHODS[method], **params)  # type: ignore[arg-type]

@@ -1,0 +1,305 @@
+"""Deterministic synthetic sequences with ground truth: a deforming textured surface (waving
+flag or face-like) seen by a moving pinhole camera.
+
+Per frame: an rgb8 image rendered by a vectorised triangle rasteriser (z-buffer, bilinear texture,
+Lambertian shading), a depth image (32FC1 metres, NaN off the surface), CameraInfo intrinsics, the
+camera pose, and for every tracked reference pixel its ground-truth 3D point in the camera
+optical frame (x right, y down, z forward; metres), its 2D track and its visibility.
+
+Track ids are the reference pixels' linear indices ``y * width + x`` (the tracker uses the same
+convention), sampled every ``stride`` pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+SURFACES = ('flag', 'face')
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    surface: str = 'flag'
+    width: int = 256
+    height: int = 192
+    frames: int = 60
+    fps: float = 10.0
+    seed: int = 0
+    distance: float = 4.0       # camera distance to the object centre, metres
+    stride: int = 2             # ground-truth track sampling on the reference pixel grid
+    noise: float = 0.0          # image noise sigma (intensity units)
+    camera_motion_deg: float = 12.0
+    amplitude: float = 1.0      # deformation amplitude multiplier
+    start_ns: int = 1_700_000_000 * 1_000_000_000
+
+    def validate(self) -> None:
+        if self.surface not in SURFACES:
+            raise ValueError(f'surface={self.surface!r}: expected one of {SURFACES}')
+        if not (64 <= self.width <= 1920 and 48 <= self.height <= 1080):
+            raise ValueError(f'width x height = {self.width}x{self.height}: expected 64..1920 x '
+                             '48..1080')
+        if not 3 <= self.frames <= 2000:
+            raise ValueError(f'frames={self.frames}: expected 3..2000')
+        if self.fps <= 0 or self.distance <= 0 or self.stride < 1:
+            raise ValueError('fps, distance must be > 0 and stride >= 1')
+
+
+@dataclass
+class SynthSequence:
+    config: SynthConfig
+    images: np.ndarray          # (F, H, W, 3) uint8 rgb
+    depth: np.ndarray           # (F, H, W) float32 metres, NaN where no surface
+    K: np.ndarray               # (3, 3)
+    T_camera_world: np.ndarray  # (F, 4, 4)
+    stamps_ns: np.ndarray       # (F,) int64
+    track_ids: np.ndarray       # (P,) uint32
+    W: np.ndarray               # (2F, P) ground-truth tracks, pixels
+    V: np.ndarray               # (F, P) ground-truth visibility
+    S: np.ndarray               # (F, P, 3) ground truth, camera optical frame, metres
+    S_world: np.ndarray         # (F, P, 3) ground truth, world (object) frame
+    extra: dict = field(default_factory=dict)
+
+    def npz_dict(self) -> dict[str, np.ndarray]:
+        return {'images': self.images, 'depth': self.depth, 'K': self.K,
+                'T_camera_world': self.T_camera_world, 'stamps_ns': self.stamps_ns,
+                'track_ids': self.track_ids, 'W': self.W, 'V': self.V, 'S': self.S,
+                'S_world': self.S_world, 'surface': np.array(self.config.surface),
+                'fps': np.array(self.config.fps)}
+
+
+# ---------------------------------------------------------------- surfaces (object frame)
+
+def _surface(kind: str, s: np.ndarray, t: np.ndarray, tau: float, amp: float,
+             phase: np.ndarray) -> np.ndarray:
+    """3D points (N, 3) of the surface at parameters s, t in [0, 1] and time tau (seconds)."""
+    if kind == 'flag':
+        x = (s - 0.5) * 1.0
+        y = (t - 0.5) * 0.7
+        wave = np.sin(2 * np.pi * (1.1 * s - 0.45 * tau) + 1.3 * t + phase[0])
+        wave2 = np.sin(2 * np.pi * (0.6 * t + 0.35 * tau) + 2.0 * s + phase[1])
+        z = amp * s * (0.09 * wave + 0.03 * wave2)
+        # the free end also sags and sways a little in-plane
+        x = x - amp * 0.02 * s ** 2 * (1 + np.cos(2 * np.pi * 0.3 * tau))
+        y = y + amp * 0.015 * s ** 2 * np.sin(2 * np.pi * 0.4 * tau + phase[2])
+        return np.stack([x, y, z], axis=1)
+    # face-like: an elliptic cap with nose, eye sockets, cheeks and a jaw that opens
+    x = (s - 0.5) * 0.36
+    y = (t - 0.5) * 0.48
+    r2 = (x / 0.18) ** 2 + (y / 0.24) ** 2
+    cap = 0.12 * np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))
+    nose = 0.05 * np.exp(-((x / 0.025) ** 2 + ((y + 0.01) / 0.05) ** 2))
+    eyes = -0.018 * (np.exp(-(((x - 0.07) / 0.03) ** 2 + ((y + 0.07) / 0.02) ** 2))
+                     + np.exp(-(((x + 0.07) / 0.03) ** 2 + ((y + 0.07) / 0.02) ** 2)))
+    open_ = amp * 0.5 * (1 - np.cos(2 * np.pi * 0.35 * tau + phase[0]))
+    jaw = np.clip((y - 0.05) / 0.19, 0.0, 1.0)
+    puff = amp * 0.012 * np.sin(2 * np.pi * 0.5 * tau + phase[1]) * (
+        np.exp(-(((x - 0.09) / 0.04) ** 2 + ((y - 0.04) / 0.04) ** 2))
+        + np.exp(-(((x + 0.09) / 0.04) ** 2 + ((y - 0.04) / 0.04) ** 2)))
+    z = -(cap + nose + eyes + puff) + 0.03 * open_ * jaw
+    y = y + 0.035 * open_ * jaw
+    return np.stack([x, y, z], axis=1)
+
+
+def _in_domain(kind: str, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    if kind == 'flag':
+        return np.ones_like(s, dtype=bool)
+    return ((s - 0.5) / 0.5) ** 2 + ((t - 0.5) / 0.5) ** 2 <= 0.98
+
+
+def _texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
+    """Multi-scale random texture (size, size, 3) uint8: trackable at every scale."""
+    tex = np.zeros((size, size, 3), np.float32)
+    for scale, weight in ((4, 0.5), (16, 0.8), (48, 1.0), (128, 0.7)):
+        noise = rng.normal(size=(scale, scale, 3)).astype(np.float32)
+        tex += weight * cv2.resize(noise, (size, size), interpolation=cv2.INTER_CUBIC)
+    # blobs of saturated colour
+    for _ in range(60):
+        c = (int(rng.integers(0, size)), int(rng.integers(0, size)))
+        r = int(rng.integers(4, 18))
+        col = tuple(float(v) for v in rng.uniform(-2.5, 2.5, 3))
+        cv2.circle(tex, c, r, col, -1, lineType=cv2.LINE_AA)
+    tex = (tex - tex.mean()) / (tex.std() + 1e-6)
+    return np.clip(128 + 45 * tex, 10, 245).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- camera
+
+def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """T_camera_world for an optical frame at ``centre`` looking at ``target`` (y down)."""
+    z = target - centre
+    z /= np.linalg.norm(z)
+    up = np.array([0.0, -1.0, 0.0])  # world y is down in the image, so camera -y is "up"
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ centre
+    return T
+
+
+def _camera_poses(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    F = cfg.frames
+    tau = np.arange(F) / cfg.fps
+    a = np.radians(cfg.camera_motion_deg)
+    ph = rng.uniform(0, 2 * np.pi, 2)
+    yaw = a * np.sin(2 * np.pi * 0.12 * tau + ph[0])
+    pitch = 0.5 * a * np.sin(2 * np.pi * 0.09 * tau + ph[1])
+    poses = np.empty((F, 4, 4))
+    for f in range(F):
+        c = cfg.distance * np.array([np.sin(yaw[f]) * np.cos(pitch[f]), np.sin(pitch[f]),
+                                     -np.cos(yaw[f]) * np.cos(pitch[f])])
+        poses[f] = _look_at(c, np.zeros(3))
+    return poses
+
+
+# ---------------------------------------------------------------- rasteriser
+
+def _grid_mesh(kind: str, n_s: int, n_t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    s, t = np.meshgrid(np.linspace(0, 1, n_s), np.linspace(0, 1, n_t))
+    s, t = s.ravel(), t.ravel()
+    i = np.arange(n_s * n_t).reshape(n_t, n_s)
+    a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, :-1].ravel(), i[1:, 1:].ravel()
+    tris = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+    inside = _in_domain(kind, s, t)
+    tris = tris[inside[tris].all(axis=1)]
+    return s, t, tris
+
+
+def rasterise(uv: np.ndarray, depth: np.ndarray, attrs: np.ndarray, tris: np.ndarray,
+              width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Z-buffered rasterisation of triangles with per-vertex attributes.
+
+    uv (N, 2) pixel coordinates of vertices, depth (N,), attrs (N, A).  Returns the depth buffer
+    (H, W) (inf where empty) and interpolated attributes (H, W, A) (NaN where empty).  Pixel
+    centres are at integer coordinates.
+    """
+    p = uv[tris]  # T x 3 x 2
+    x0 = np.clip(np.floor(p[..., 0].min(axis=1)).astype(int), 0, width - 1)
+    x1 = np.clip(np.ceil(p[..., 0].max(axis=1)).astype(int), 0, width - 1)
+    y0 = np.clip(np.floor(p[..., 1].min(axis=1)).astype(int), 0, height - 1)
+    y1 = np.clip(np.ceil(p[..., 1].max(axis=1)).astype(int), 0, height - 1)
+    bw, bh = x1 - x0 + 1, y1 - y0 + 1
+    ok = (bw > 0) & (bh > 0) & (p[..., 0].max(1) >= 0) & (p[..., 0].min(1) <= width - 1) \
+        & (p[..., 1].max(1) >= 0) & (p[..., 1].min(1) <= height - 1)
+    tri_idx = np.nonzero(ok)[0]
+    counts = (bw * bh)[tri_idx]
+    ti = np.repeat(tri_idx, counts)
+    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    px = x0[ti] + local % bw[ti]
+    py = y0[ti] + local // bw[ti]
+    a, b, c = p[ti, 0], p[ti, 1], p[ti, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    area = np.where(np.abs(area) < 1e-12, 1e-12, area)
+    w0 = ((b[:, 0] - px) * (c[:, 1] - py) - (b[:, 1] - py) * (c[:, 0] - px)) / area
+    w1 = ((c[:, 0] - px) * (a[:, 1] - py) - (c[:, 1] - py) * (a[:, 0] - px)) / area
+    w2 = 1.0 - w0 - w1
+    eps = -1e-7
+    inside = (w0 >= eps) & (w1 >= eps) & (w2 >= eps)
+    ti, px, py, w = ti[inside], px[inside], py[inside], np.stack([w0, w1, w2], 1)[inside]
+    vid = tris[ti]
+    z = np.einsum('nk,nk->n', w, depth[vid])
+    pix = py * width + px
+    order = np.lexsort((z, pix))
+    pix_sorted = pix[order]
+    first = np.ones(order.size, bool)
+    first[1:] = pix_sorted[1:] != pix_sorted[:-1]
+    win = order[first]
+    zbuf = np.full(height * width, np.inf)
+    zbuf[pix[win]] = z[win]
+    out = np.full((height * width, attrs.shape[1]), np.nan)
+    out[pix[win]] = np.einsum('nk,nka->na', w[win], attrs[vid[win]])
+    return zbuf.reshape(height, width), out.reshape(height, width, attrs.shape[1])
+
+
+def _project(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
+    return (Xc[:, :2] / Xc[:, 2:3]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+
+
+def generate(cfg: SynthConfig) -> SynthSequence:
+    """Render the sequence and its ground truth (deterministic for a given config)."""
+    cfg.validate()
+    rng = np.random.default_rng(cfg.seed)
+    texture = _texture(rng)
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    extent = 1.0 if cfg.surface == 'flag' else 0.5
+    f = 0.75 * cfg.width * cfg.distance / extent
+    K = np.array([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1.0]])
+    poses = _camera_poses(cfg, rng)
+    n_s = max(40, cfg.width // 3)
+    s, t, tris = _grid_mesh(cfg.surface, n_s, int(n_s * 0.75))
+    F, H, Wd = cfg.frames, cfg.height, cfg.width
+    light = np.array([0.3, -0.4, -1.0])
+    light /= np.linalg.norm(light)
+    images = np.empty((F, H, Wd, 3), np.uint8)
+    depth = np.empty((F, H, Wd), np.float32)
+    zbufs = []
+    ref_st = None
+    for fi in range(F):
+        tau = fi / cfg.fps
+        Xw = _surface(cfg.surface, s, t, tau, cfg.amplitude, phase)
+        Xc = Xw @ poses[fi, :3, :3].T + poses[fi, :3, 3]
+        uv = _project(K, Xc)
+        normals = _vertex_normals(Xc, tris)
+        shade = 0.35 + 0.65 * np.abs(normals @ light)
+        attrs = np.stack([s, t, shade], axis=1)
+        zbuf, att = rasterise(uv, Xc[:, 2], attrs, tris, Wd, H)
+        covered = np.isfinite(zbuf)
+        st = np.nan_to_num(att[..., :2])
+        tex = cv2.remap(texture, (st[..., 0] * (texture.shape[1] - 1)).astype(np.float32),
+                        (st[..., 1] * (texture.shape[0] - 1)).astype(np.float32),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        img = tex.astype(np.float32) * np.nan_to_num(att[..., 2:3])
+        img[~covered] = 20.0
+        if cfg.noise > 0:
+            img += rng.normal(0, cfg.noise, img.shape)
+        images[fi] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        depth[fi] = np.where(covered, zbuf, np.nan).astype(np.float32)
+        zbufs.append(zbuf)
+        if fi == 0:
+            ref_st = att[..., :2]
+    assert ref_st is not None
+    # ground-truth tracks of every stride-th covered reference pixel
+    grid = np.zeros((H, Wd), bool)
+    grid[::cfg.stride, ::cfg.stride] = True
+    ys, xs = np.nonzero(np.isfinite(zbufs[0]) & grid)
+    ids = (ys * Wd + xs).astype(np.uint32)
+    ps, pt = ref_st[ys, xs, 0], ref_st[ys, xs, 1]
+    P = ids.size
+    Wt = np.empty((2 * F, P))
+    V = np.empty((F, P))
+    S = np.empty((F, P, 3))
+    Sw = np.empty((F, P, 3))
+    for fi in range(F):
+        Xw = _surface(cfg.surface, ps, pt, fi / cfg.fps, cfg.amplitude, phase)
+        Xc = Xw @ poses[fi, :3, :3].T + poses[fi, :3, 3]
+        uv = _project(K, Xc)
+        Wt[2 * fi], Wt[2 * fi + 1] = uv[:, 0], uv[:, 1]
+        S[fi], Sw[fi] = Xc, Xw
+        xi = np.clip(np.rint(uv[:, 0]).astype(int), 0, Wd - 1)
+        yi = np.clip(np.rint(uv[:, 1]).astype(int), 0, H - 1)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= Wd - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
+        V[fi] = inside & (Xc[:, 2] <= zbufs[fi][yi, xi] + 0.02)
+    stamps = cfg.start_ns + np.rint(np.arange(F) / cfg.fps * 1e9).astype(np.int64)
+    return SynthSequence(config=cfg, images=images, depth=depth, K=K, T_camera_world=poses,
+                         stamps_ns=stamps, track_ids=ids, W=Wt, V=V, S=S, S_world=Sw)
+
+
+def _vertex_normals(X: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    n = np.cross(X[tris[:, 1]] - X[tris[:, 0]], X[tris[:, 2]] - X[tris[:, 0]])
+    vn = np.zeros_like(X)
+    for k in range(3):
+        np.add.at(vn, tris[:, k], n)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+
+
+def scene_flow_ground_truth(seq: SynthSequence, f: int) -> np.ndarray:
+    """True 3D velocity (P, 3) of the tracked points between frames f-1 and f, in camera f's
+    frame, with the camera's own motion removed (the NRSfM-Flow 'object' convention)."""
+    if not 1 <= f < seq.S.shape[0]:
+        raise ValueError(f'f: expected 1..{seq.S.shape[0] - 1}, got {f}')
+    R = seq.T_camera_world[f, :3, :3]
+    return (seq.S_world[f] - seq.S_world[f - 1]) @ R.T * seq.config.fps

@@ -1,0 +1,121 @@
+"""Parameter sets of the four nodes: one vocabulary for the core, the YAML files in config/,
+the ROS parameters and the CLI.  Each field has a default and a validator that gives a reason."""
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+from .core.tracking import PRESETS
+
+
+def _one_of(*values: str) -> Callable[[Any], str | None]:
+    return lambda v: None if v in values else f'expected one of {list(values)}'
+
+
+def _positive(v: Any) -> str | None:
+    return None if v > 0 else 'must be > 0'
+
+
+def _non_negative(v: Any) -> str | None:
+    return None if v >= 0 else 'must be >= 0'
+
+
+def _at_least(n: float) -> Callable[[Any], str | None]:
+    return lambda v: None if v >= n else f'must be >= {n}'
+
+
+def _unit(v: Any) -> str | None:
+    return None if 0 < v <= 1 else 'must be in (0, 1]'
+
+
+@dataclass(frozen=True)
+class Params:
+    """Base: ``validate`` returns a list of (name, reason); ``updated`` validates a change."""
+
+    def check(self) -> list[tuple[str, str]]:
+        errors = []
+        for f in fields(self):
+            rule = f.metadata.get('rule') if f.metadata else None
+            value = getattr(self, f.name)
+            if rule is not None:
+                reason = rule(value)
+                if reason:
+                    errors.append((f.name, f'{f.name}={value!r}: {reason}'))
+        return errors
+
+    def updated(self, changes: Mapping[str, Any]) -> Params:
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ValueError(f'unknown parameter(s): {sorted(unknown)}')
+        new = replace(self, **changes)
+        errors = new.check()
+        if errors:
+            raise ValueError('; '.join(reason for _, reason in errors))
+        return new
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def rule(default: Any, check: Callable[[Any], str | None] | None = None,
+         doc: str = '') -> Any:
+    from dataclasses import field
+    return field(default=default, metadata={'rule': check, 'doc': doc})
+
+
+@dataclass(frozen=True)
+class TrackerParams(Params):
+    preset: str = rule('medium', _one_of(*PRESETS), 'OpenCV DIS preset of the flow data step')
+    stride: int = rule(2, _at_least(1), 'track every stride-th reference pixel')
+    mask: str = rule('texture', _one_of('texture', 'full'), 'which reference pixels to track')
+    min_std: float = rule(4.0, _non_negative, 'texture mask: local intensity std threshold')
+    occlusion_threshold: float = rule(25.0, _positive, 'photometric residual for visibility 0')
+    publish_flow: bool = rule(True, None, 'publish the dense flow image')
+    reliable: bool = rule(False, None, 'reliable QoS on the camera input (default best effort)')
+
+
+@dataclass(frozen=True)
+class ReconstructorParams(Params):
+    mode: str = rule('window', _one_of('window', 'batch'), 'sliding window or whole batches')
+    method: str = rule('lowrank', _one_of('lowrank', 'rigid'), 'NRSfM method (batch mode)')
+    window: int = rule(15, _at_least(3), 'frames per sliding window')
+    batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
+    rank: int = rule(2, _at_least(1), 'shape basis rank K')
+    iterations: int = rule(30, _at_least(1), 'alternation iterations per window')
+    mean_depth: float = rule(4.0, _positive, 'distance to the surface (m) for metric output')
+    focal_length_px: float = rule(0.0, _non_negative,
+                                  'fx when no CameraInfo arrives (0: output '
+                                  'stays in orthographic image units)')
+    reliable: bool = rule(True, None, 'reliable QoS on the tracks input')
+
+
+@dataclass(frozen=True)
+class RegistrarParams(Params):
+    method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane'),
+                       'registration method')
+    max_iterations: int = rule(50, _at_least(1), 'iteration cap')
+    tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
+    trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
+    try_reflection: bool = rule(True, None,
+                                'also try the depth-mirrored source (orthographic NRSfM has a '
+                                'depth reflection ambiguity) and keep the better fit')
+
+
+@dataclass(frozen=True)
+class SceneFlowParams(Params):
+    frame: str = rule('object', _one_of('object', 'camera'),
+                      'object: camera ego-motion removed; camera: raw difference')
+    marker_stride: int = rule(50, _at_least(1), 'one arrow per marker_stride points')
+    marker_scale: float = rule(0.1, _positive, 'arrow length per (m/s)')
+
+
+NODE_PARAMS: dict[str, type[Params]] = {
+    'tracker': TrackerParams, 'reconstructor': ReconstructorParams,
+    'registrar': RegistrarParams, 'scene_flow': SceneFlowParams,
+}
+
+
+def from_mapping(cls: type[Params], values: Mapping[str, Any]) -> Params:
+    """Build and validate a parameter set from a mapping (YAML ros__parameters)."""
+    return cls().updated(dict(values))

@@ -1,0 +1,410 @@
+"""Per-message processing shared by the live nodes and offline ``nrsfm-ros process``.
+
+Each processor takes a message (rclpy or rosbags: both expose the same attributes) and returns
+``(topic, msgtype, message)`` outputs built with its :class:`MsgFactory`.  Malformed input raises
+:class:`MessageError`; the caller counts, logs once and skips it (see :class:`Stats`).
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .core.nrsfm import WindowNRSfM, reconstruct
+from .core.registration import register
+from .core.sceneflow import scene_flow
+from .core.tracking import ReferenceFlowTracker
+from .io import image as img_io
+from .io import pointcloud2 as pc2
+from .io.errors import MessageError
+from .io.msgtypes import MsgFactory, stamp_ns
+from .params import ReconstructorParams, RegistrarParams, SceneFlowParams, TrackerParams
+
+Output = tuple[str, str, Any]
+
+PC2 = 'sensor_msgs/msg/PointCloud2'
+IMAGE = 'sensor_msgs/msg/Image'
+
+TOPICS = {
+    'image': 'camera/image_raw', 'image_compressed': 'camera/image_raw/compressed',
+    'camera_info': 'camera/camera_info', 'depth': 'camera/depth/image_raw',
+    'tracks': 'nrsfm/tracks', 'flow': 'nrsfm/flow', 'points': 'nrsfm/points',
+    'reference': 'registration/reference', 'aligned': 'registration/aligned',
+    'transform': 'registration/transform', 'displacement': 'registration/displacement',
+    'scene_flow': 'scene_flow/points', 'markers': 'scene_flow/markers',
+    'diagnostics': '/diagnostics',
+}
+
+
+@dataclass
+class Stats:
+    """Counters reported on /diagnostics."""
+
+    received: int = 0
+    processed: int = 0
+    published: int = 0
+    malformed: int = 0
+    dropped: int = 0
+    last_error: str = ''
+    latencies: deque = field(default_factory=lambda: deque(maxlen=100))
+    stamps: deque = field(default_factory=lambda: deque(maxlen=100))
+    errors_by_stamp: dict = field(default_factory=dict)
+
+    def rate_hz(self) -> float:
+        if len(self.stamps) < 2:
+            return 0.0
+        span = self.stamps[-1] - self.stamps[0]
+        return (len(self.stamps) - 1) / span if span > 0 else 0.0
+
+    def latency_ms(self) -> float:
+        return 1000.0 * float(np.mean(self.latencies)) if self.latencies else 0.0
+
+
+class Processor:
+    name = 'processor'
+
+    def __init__(self, factory: MsgFactory) -> None:
+        self.factory = factory
+        self.stats = Stats()
+
+    def handle(self, kind: str, msg: Any) -> list[Output]:
+        """Dispatch ``msg`` of input ``kind``; counts, times and records errors."""
+        self.stats.received += 1
+        self.stats.stamps.append(time.monotonic())
+        t0 = time.perf_counter()
+        try:
+            out = getattr(self, f'on_{kind}')(msg)
+        except MessageError as err:
+            self.stats.malformed += 1
+            self.stats.last_error = str(err)
+            try:
+                self.stats.errors_by_stamp[stamp_ns(msg.header)] = str(err)
+            except Exception:  # header itself unreadable
+                pass
+            raise
+        self.stats.latencies.append(time.perf_counter() - t0)
+        self.stats.processed += 1
+        self.stats.published += len(out)
+        return out
+
+
+class TrackerProcessor(Processor):
+    """camera image -> nrsfm/tracks (u, v, track_id, visibility, rgb) + nrsfm/flow."""
+
+    name = 'tracker'
+
+    def __init__(self, factory: MsgFactory, params: TrackerParams | None = None) -> None:
+        super().__init__(factory)
+        self.params = params or TrackerParams()
+        self.tracker = self._make_tracker()
+        self._rgb: np.ndarray | None = None
+
+    def _make_tracker(self) -> ReferenceFlowTracker:
+        p = self.params
+        return ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,
+                                    min_std=p.min_std, occlusion_threshold=p.occlusion_threshold)
+
+    def set_params(self, params: TrackerParams) -> None:
+        self.params = params
+        self.tracker = self._make_tracker()
+
+    def on_image(self, msg: Any) -> list[Output]:
+        return self._track(img_io.image_to_array(msg), str(msg.encoding), msg.header)
+
+    def on_image_compressed(self, msg: Any) -> list[Output]:
+        arr, enc = img_io.compressed_to_array(msg)
+        return self._track(arr, enc, msg.header)
+
+    def _track(self, arr: np.ndarray, encoding: str, header: Any) -> list[Output]:
+        grey = img_io.to_mono8(arr, encoding)
+        ref = self.tracker.reference
+        if ref is not None and grey.shape != ref.shape:
+            raise MessageError('height/width', grey.shape,
+                               f'image size changed from the reference {ref.shape}')
+        first = ref is None
+        tf = self.tracker.step(grey)
+        if first:
+            rgb = img_io.to_rgb8(arr, encoding)
+            h, w = grey.shape
+            ids = self.tracker.ids.astype(np.int64)
+            self._rgb = pc2.pack_rgb(rgb.reshape(-1, 3)[ids])
+        stamp, frame = stamp_ns(header), str(header.frame_id)
+        tracks = pc2.to_msg({'u': tf.uv[:, 0].astype(np.float32),
+                             'v': tf.uv[:, 1].astype(np.float32),
+                             'track_id': self.tracker.ids,
+                             'visibility': tf.visibility.astype(np.float32),
+                             'rgb': self._rgb}, self.factory, stamp, frame)
+        out: list[Output] = [(TOPICS['tracks'], PC2, tracks)]
+        if self.params.publish_flow:
+            out.append((TOPICS['flow'], IMAGE,
+                        img_io.array_to_image(tf.flow, '32FC2', self.factory, stamp, frame)))
+        return out
+
+
+def to_metric(S: np.ndarray, scale: float, t: np.ndarray, K: np.ndarray | None,
+              mean_depth: float) -> np.ndarray:
+    """Orthographic shape (P, 3) in image units -> camera optical frame in metres by
+    weak-perspective back-projection at ``mean_depth``; without K the image units stay."""
+    pix = S * scale
+    if K is None:
+        return pix
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    x = (pix[:, 0] + t[0] - cx) * mean_depth / fx
+    y = (pix[:, 1] + t[1] - cy) * mean_depth / fy
+    z = mean_depth + pix[:, 2] * mean_depth / fx
+    return np.stack([x, y, z], axis=1)
+
+
+class ReconstructorProcessor(Processor):
+    """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id), one cloud per tracks message."""
+
+    name = 'reconstructor'
+
+    def __init__(self, factory: MsgFactory, params: ReconstructorParams | None = None) -> None:
+        super().__init__(factory)
+        self.params = params or ReconstructorParams()
+        self.K: np.ndarray | None = None
+        self._reset()
+
+    def _reset(self) -> None:
+        p = self.params
+        self.window = WindowNRSfM(window=p.window, rank=p.rank, iterations=p.iterations)
+        self._pending: deque[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        self._ids: np.ndarray | None = None
+
+    def set_params(self, params: ReconstructorParams) -> None:
+        self.params = params
+        self._reset()
+
+    def on_camera_info(self, msg: Any) -> list[Output]:
+        self.K = img_io.camera_info_K(msg)
+        return []
+
+    def _intrinsics(self) -> np.ndarray | None:
+        if self.K is not None:
+            return self.K
+        if self.params.focal_length_px > 0:
+            f = self.params.focal_length_px
+            return np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
+        return None
+
+    def on_tracks(self, msg: Any) -> list[Output]:
+        cols = pc2.read_fields(msg, ('u', 'v', 'visibility'), np.float64)
+        ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0]
+        names = pc2.field_names(msg)
+        rgb = pc2.read_points(msg).reshape(-1)['rgb'].astype(np.float32) if 'rgb' in names \
+            else np.zeros(ids.size, np.float32)
+        if ids.size < 4:
+            raise MessageError('width', ids.size, 'need at least 4 tracks to reconstruct')
+        if not np.isfinite(cols[:, :2]).all() and np.isfinite(cols[:, :2]).sum() < 8:
+            raise MessageError('u/v', 'non-finite', 'no finite track positions')
+        if self._ids is not None and not np.array_equal(ids, self._ids):
+            self._reset()  # new reference: the track set changed
+        self._ids = ids
+        vis = np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0)
+        uv = np.nan_to_num(cols[:, :2])
+        self._pending.append((stamp_ns(msg.header), str(msg.header.frame_id), uv, vis, rgb))
+        if self.params.mode == 'window':
+            shapes = [(fs.S, fs.scale, fs.t) for fs in self.window.push(uv, vis)]
+        else:
+            shapes = self._batch()
+        out: list[Output] = []
+        K = self._intrinsics()
+        for S, scale, t in shapes:
+            stamp, frame, _, _, rgb_f = self._pending.popleft()
+            X = to_metric(S, scale, t, K, self.params.mean_depth).astype(np.float32)
+            cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb_f,
+                                'track_id': ids}, self.factory, stamp, frame)
+            out.append((TOPICS['points'], PC2, cloud))
+        return out
+
+    def _batch(self) -> list[tuple[np.ndarray, float, np.ndarray]]:
+        if len(self._pending) < self.params.batch_frames:
+            return []
+        W = np.concatenate([p[2].T for p in self._pending], axis=0)
+        V = np.maximum(np.stack([p[3] for p in self._pending]), 1e-3)
+        kw = {} if self.params.method == 'rigid' else {'rank': self.params.rank}
+        res = reconstruct(W, V, method=self.params.method, **kw)
+        return [(res.S[f], float(res.scale[f]), res.t[f]) for f in range(res.S.shape[0])]
+
+    def flush(self) -> list[Output]:
+        """End of an offline stream in batch mode: reconstruct what is pending (>= 3 frames)."""
+        if self.params.mode != 'batch' or len(self._pending) < 3 or self._ids is None:
+            return []
+        saved = self.params
+        self.params = self.params.updated({'batch_frames': len(self._pending)})
+        try:
+            shapes = self._batch()
+        finally:
+            self.params = saved
+        out: list[Output] = []
+        K = self._intrinsics()
+        for S, scale, t in shapes:
+            stamp, frame, _, _, rgb_f = self._pending.popleft()
+            X = to_metric(S, scale, t, K, self.params.mean_depth).astype(np.float32)
+            out.append((TOPICS['points'], PC2, pc2.to_msg(
+                {'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb_f, 'track_id': self._ids},
+                self.factory, stamp, frame)))
+        return out
+
+
+class RegistrarProcessor(Processor):
+    """nrsfm/points + registration/reference -> aligned cloud, transform, displacement."""
+
+    name = 'registrar'
+
+    def __init__(self, factory: MsgFactory, params: RegistrarParams | None = None) -> None:
+        super().__init__(factory)
+        self.params = params or RegistrarParams()
+        self.reference: np.ndarray | None = None
+        self.reference_frame = ''
+        self.last_reflected = False
+
+    def set_params(self, params: RegistrarParams) -> None:
+        self.params = params
+
+    def on_reference(self, msg: Any) -> list[Output]:
+        ref = pc2.read_xyz(msg)
+        if ref.shape[0] < 3:
+            raise MessageError('width', ref.shape[0], 'reference needs at least 3 finite points')
+        self.reference = ref
+        self.reference_frame = str(msg.header.frame_id)
+        return []
+
+    def on_points(self, msg: Any) -> list[Output]:
+        if self.reference is None:
+            self.stats.dropped += 1
+            return []
+        src = pc2.read_xyz(msg, skip_nans=False)
+        ok = np.isfinite(src).all(axis=1)
+        if ok.sum() < 3:
+            raise MessageError('data', int(ok.sum()), 'fewer than 3 finite points')
+        ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0] \
+            if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
+        src, ids = src[ok], ids[ok]
+        p = self.params
+        kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim)
+        res = register(src, self.reference, method=p.method, **kw)
+        self.last_reflected = False
+        if p.try_reflection:
+            c = src.mean(axis=0)
+            mirrored = src.copy()
+            mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
+            alt = register(mirrored, self.reference, method=p.method, **kw)
+            if alt.residual < res.residual:
+                res, self.last_reflected = alt, True
+        self.last_result = res
+        stamp = stamp_ns(msg.header)
+        frame = self.reference_frame or str(msg.header.frame_id)
+        A = res.aligned.astype(np.float32)
+        D = (res.aligned - src).astype(np.float32)
+        aligned = pc2.to_msg({'x': A[:, 0], 'y': A[:, 1], 'z': A[:, 2], 'track_id': ids},
+                             self.factory, stamp, frame)
+        disp = pc2.to_msg({'x': src[:, 0].astype(np.float32), 'y': src[:, 1].astype(np.float32),
+                           'z': src[:, 2].astype(np.float32), 'dx': D[:, 0], 'dy': D[:, 1],
+                           'dz': D[:, 2]}, self.factory, stamp, str(msg.header.frame_id))
+        return [(TOPICS['aligned'], PC2, aligned),
+                (TOPICS['transform'], 'geometry_msgs/msg/TransformStamped',
+                 transform_msg(self.factory, res.T_target_source, stamp, frame,
+                               str(msg.header.frame_id))),
+                (TOPICS['displacement'], PC2, disp)]
+
+
+def transform_msg(factory: MsgFactory, T: np.ndarray, stamp: int, parent: str, child: str
+                  ) -> Any:
+    from scipy.spatial.transform import Rotation
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+    tr = factory.make('geometry_msgs/msg/Transform',
+                      translation=factory.make('geometry_msgs/msg/Vector3', x=float(T[0, 3]),
+                                               y=float(T[1, 3]), z=float(T[2, 3])),
+                      rotation=factory.make('geometry_msgs/msg/Quaternion', x=float(q[0]),
+                                            y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return factory.make('geometry_msgs/msg/TransformStamped',
+                        header=factory.header(stamp, parent), child_frame_id=child, transform=tr)
+
+
+def transform_matrix(msg: Any) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+    r, t = msg.transform.rotation, msg.transform.translation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+    T[:3, 3] = [t.x, t.y, t.z]
+    return T
+
+
+class SceneFlowProcessor(Processor):
+    """nrsfm/points -> scene_flow/points (x, y, z, vx, vy, vz in m/s) + arrow markers."""
+
+    name = 'scene_flow'
+
+    def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
+        super().__init__(factory)
+        self.params = params or SceneFlowParams()
+        self._prev: tuple[int, np.ndarray, np.ndarray] | None = None
+
+    def set_params(self, params: SceneFlowParams) -> None:
+        self.params = params
+
+    def on_points(self, msg: Any) -> list[Output]:
+        X = pc2.read_xyz(msg, skip_nans=False)
+        ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0]
+        ok = np.isfinite(X).all(axis=1)
+        X, ids = X[ok], ids[ok]
+        stamp = stamp_ns(msg.header)
+        prev, self._prev = self._prev, (stamp, X, ids)
+        if prev is None or stamp <= prev[0]:
+            # first cloud (or time went backwards): zero flow, so every input has an output
+            v = np.zeros_like(X)
+            pts = X
+        else:
+            sf = scene_flow(prev[1], prev[2], X, ids, (stamp - prev[0]) * 1e-9,
+                            frame=self.params.frame)
+            pts, v, ids = sf.points, sf.velocity, sf.ids
+        pts32, v32 = pts.astype(np.float32), v.astype(np.float32)
+        cloud = pc2.to_msg({'x': pts32[:, 0], 'y': pts32[:, 1], 'z': pts32[:, 2],
+                            'vx': v32[:, 0], 'vy': v32[:, 1], 'vz': v32[:, 2],
+                            'track_id': ids.astype(np.uint32)},
+                           self.factory, stamp, str(msg.header.frame_id))
+        return [(TOPICS['scene_flow'], PC2, cloud),
+                (TOPICS['markers'], 'visualization_msgs/msg/MarkerArray',
+                 self._markers(pts, v, stamp, str(msg.header.frame_id)))]
+
+    def _markers(self, pts: np.ndarray, v: np.ndarray, stamp: int, frame: str) -> Any:
+        f = self.factory
+        sel = slice(None, None, self.params.marker_stride)
+        a, b = pts[sel], pts[sel] + v[sel] * self.params.marker_scale
+        seg = np.empty((2 * a.shape[0], 3))
+        seg[0::2], seg[1::2] = a, b
+        points = [f.make('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                  for p in seg]
+        marker = f.make('visualization_msgs/msg/Marker', header=f.header(stamp, frame),
+                        ns='scene_flow', id=0, type=5, action=0,
+                        pose=f.make('geometry_msgs/msg/Pose',
+                                    orientation=f.make('geometry_msgs/msg/Quaternion', w=1.0)),
+                        scale=f.make('geometry_msgs/msg/Vector3', x=0.003),
+                        color=f.make('std_msgs/msg/ColorRGBA', r=1.0, g=0.3, b=0.1, a=1.0),
+                        points=points)
+        return f.make('visualization_msgs/msg/MarkerArray', markers=[marker])
+
+
+def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,
+                    extra: dict[str, str] | None = None) -> Any:
+    """DiagnosticArray with one status: rate, latency, received/processed/dropped/malformed."""
+    values = {'rate_hz': f'{stats.rate_hz():.2f}', 'latency_ms': f'{stats.latency_ms():.2f}',
+              'received': str(stats.received), 'processed': str(stats.processed),
+              'published': str(stats.published), 'dropped': str(stats.dropped),
+              'malformed': str(stats.malformed), 'last_error': stats.last_error}
+    values.update(extra or {})
+    level = 0 if not stats.malformed and not stats.dropped else 1
+    status = factory.make('diagnostic_msgs/msg/DiagnosticStatus',
+                          level=bytes([level]) if factory.backend == 'rclpy' else level,
+                          name=f'nrsfm_ros: {node}',
+                          message='ok' if level == 0 else 'malformed or dropped input',
+                          hardware_id=node,
+                          values=[factory.make('diagnostic_msgs/msg/KeyValue', key=k, value=v)
+                                  for k, v in values.items()])
+    return factory.make('diagnostic_msgs/msg/DiagnosticArray',
+                        header=factory.header(stamp, ''), status=[status])
