@@ -82,7 +82,7 @@ class ReconstructorParams(Params):
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K')
-    iterations: int = rule(30, _at_least(1), 'alternation iterations per window')
+    iterations: int = rule(20, _at_least(1), 'alternation iterations per window')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface (m) for metric output')
     focal_length_px: float = rule(0.0, _non_negative,
                                   'fx when no CameraInfo arrives (0: output '
@@ -94,7 +94,8 @@ class ReconstructorParams(Params):
 class RegistrarParams(Params):
     method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane'),
                        'registration method')
-    max_iterations: int = rule(50, _at_least(1), 'iteration cap')
+    max_iterations: int = rule(30, _at_least(1), 'iteration cap')
+    max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
     tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
     try_reflection: bool = rule(True, None,

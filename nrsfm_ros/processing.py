@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .core.nrsfm import WindowNRSfM, reconstruct
 from .core.registration import register
@@ -271,6 +272,7 @@ class RegistrarProcessor(Processor):
         if ref.shape[0] < 3:
             raise MessageError('width', ref.shape[0], 'reference needs at least 3 finite points')
         self.reference = ref
+        self._tree = cKDTree(ref)
         self.reference_frame = str(msg.header.frame_id)
         return []
 
@@ -286,7 +288,8 @@ class RegistrarProcessor(Processor):
             if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
         src, ids = src[ok], ids[ok]
         p = self.params
-        kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim)
+        kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
+                  max_points=p.max_points, target_tree=self._tree)
         res = register(src, self.reference, method=p.method, **kw)
         self.last_reflected = False
         if p.try_reflection:

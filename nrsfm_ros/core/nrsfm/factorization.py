@@ -125,8 +125,9 @@ def _procrustes_cameras(Wc: np.ndarray, V: np.ndarray, S: np.ndarray
     M_f, then its nearest scaled-orthonormal matrix (polar decomposition; exact on clean data)."""
     F = V.shape[0]
     Wf = Wc.reshape(F, 2, -1)
-    WSt = np.einsum('fkp,fp,fip->fki', Wf, V, S)  # F x 2 x 3
-    SSt = np.einsum('fip,fp,fjp->fij', S, V, S) + 1e-12 * np.eye(3)
+    SV = S * V[:, None, :]
+    WSt = Wf @ SV.transpose(0, 2, 1)  # F x 2 x 3
+    SSt = S @ SV.transpose(0, 2, 1) + 1e-12 * np.eye(3)
     M = np.linalg.solve(SSt, WSt.transpose(0, 2, 1)).transpose(0, 2, 1)
     R2, scale = scaled_orthonormal(M)
     return R2, scale
@@ -189,14 +190,14 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
         sR = R2 * scale[:, None, None]
         G = np.einsum('fki,fkj->fij', sR, sR)  # F x 3 x 3, rank 2
         lam, E = np.linalg.eigh(G)  # per-frame eigenbasis
-        rhs = np.einsum('fki,fkp->fip', sR, Wc) * V[:, None, :] + rho * Z
-        coef = np.einsum('fij,fip->fjp', E, rhs) / (rho + lam[:, :, None] * V[:, None, :])
-        S = np.einsum('fij,fjp->fip', E, coef)
+        rhs = (sR.transpose(0, 2, 1) @ Wc) * V[:, None, :] + rho * Z
+        coef = (E.transpose(0, 2, 1) @ rhs) / (rho + lam[:, :, None] * V[:, None, :])
+        S = E @ coef
         # (b) rank-K projection of S# (F x 3P)
         Z = _rank_project(S.reshape(F, 3 * P), rank).reshape(F, 3, P)
         # (c) cameras, (d) translations on the low-rank shapes
         R2, scale = _procrustes_cameras(Wc, V, Z)
-        pred = np.einsum('fki,fip->fkp', R2 * scale[:, None, None], Z)
+        pred = (R2 * scale[:, None, None]) @ Z
         tn = ((Wf - pred) * V[:, None, :]).sum(axis=2) / np.maximum(V.sum(axis=1), 1e-12)[:, None]
         err = float(np.sum(V[:, None, :] * (Wf - tn[:, :, None] - pred) ** 2))
         rho *= rho_growth

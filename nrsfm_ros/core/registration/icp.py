@@ -70,11 +70,15 @@ def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
 def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         max_iterations: int = 50, tolerance: float = 1e-6,
         max_correspondence_distance: float = np.inf, init: str | np.ndarray = 'centroid',
-        trim: float = 0.9) -> RegistrationResult:
+        trim: float = 0.9, max_points: int = 5000, target_tree: cKDTree | None = None,
+        ) -> RegistrationResult:
     """Align ``source`` (N, 3) to ``target`` (M, 3).
 
     ``init``: 'centroid' (translate centroids together), 'identity', or a 4x4 T_target_source.
     ``trim``: fraction of closest pairs kept each iteration (robust to partial overlap).
+    ``target_tree``: a cKDTree of ``target`` to reuse across calls (a fixed reference).
+    ``max_points``: the iterations use an evenly strided subset of at most this many source
+    points (the transform is then applied to all of them); 0 uses every point.
     """
     t0 = time.perf_counter()
     if method not in ('point_to_point', 'point_to_plane'):
@@ -93,7 +97,10 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         T = np.asarray(init, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f'init: expected a 4x4 transform, got shape {T.shape}')
-    tree = cKDTree(dst)
+    full_src = src
+    if max_points and src.shape[0] > max_points:
+        src = src[np.linspace(0, src.shape[0] - 1, max_points).astype(np.intp)]
+    tree = cKDTree(dst) if target_tree is None else target_tree
     normals = estimate_normals(dst, tree=tree) if method == 'point_to_plane' else None
     prev = np.inf
     converged = False
@@ -121,9 +128,12 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
             converged = True
             break
         prev = rmse
-    aligned = _apply(T, src)
+    aligned = _apply(T, full_src)
+    dist, idx = tree.query(aligned)
+    keep = dist <= max_correspondence_distance
     corr = np.where(keep, idx, -1)
-    return RegistrationResult(T_target_source=T, aligned=aligned, displacement=aligned - src,
+    return RegistrationResult(T_target_source=T, aligned=aligned,
+                              displacement=aligned - full_src,
                               correspondences=corr, iterations=it, converged=converged,
                               residual=rmse, fitness=float(keep.mean()),
                               seconds=time.perf_counter() - t0, method=f'icp-{method}')

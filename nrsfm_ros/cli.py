@@ -1,0 +1,444 @@
+"""nrsfm-ros: the command line (argparse).  Every verb has --help with an example; bad input
+prints one ``error:`` line and exits non-zero."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+EXAMPLES = {
+    'demo': 'nrsfm-ros demo --out out/demo',
+    'synth': 'nrsfm-ros synth --surface face --size 320x240 --frames 80 --out bags/face',
+    'record': 'nrsfm-ros record nrsfm/points scene_flow/points --out bags/rec --duration 10',
+    'replay': 'nrsfm-ros replay bags/face --rate 0.5 --loop --clock',
+    'process': 'nrsfm-ros process bags/face --out bags/face_out --report report.json',
+    'topic': 'nrsfm-ros topic list; nrsfm-ros topic echo nrsfm/points -n 1; '
+             'nrsfm-ros topic hz camera/image_raw',
+    'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
+    'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
+    'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method lowrank --rank 3 --out shapes.npz',
+    'register': 'nrsfm-ros register source.ply target.ply --method icp --out result.npz',
+}
+
+
+class CliError(Exception):
+    pass
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='nrsfm-ros', description=__doc__)
+    sub = p.add_subparsers(dest='verb', required=True)
+
+    def add(name: str, help_: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_, description=help_,
+                              epilog=f'example: {EXAMPLES[name]}',
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    d = add('demo', 'the main job: live graph on the sample bag, summary, PLY and PNG renders')
+    d.add_argument('--out', default='out/demo', help='output folder (default out/demo)')
+    d.add_argument('--bags', default='bags', help='where the sample bag lives (default bags)')
+    d.add_argument('--rate', type=float, default=1.0, help='replay rate (default 1.0)')
+    d.add_argument('--timeout', type=float, default=60.0,
+                   help='seconds to wait for the last outputs after replay (default 60)')
+
+    s = add('synth', 'write a synthetic deforming sequence (MCAP bag + .npz ground truth)')
+    s.add_argument('--surface', choices=['flag', 'face'], default='flag')
+    s.add_argument('--size', default='256x192', help='WIDTHxHEIGHT (default 256x192)')
+    s.add_argument('--frames', type=int, default=60)
+    s.add_argument('--fps', type=float, default=10.0)
+    s.add_argument('--seed', type=int, default=0)
+    s.add_argument('--noise', type=float, default=0.0, help='image noise sigma')
+    s.add_argument('--stride', type=int, default=2, help='ground-truth track sampling')
+    s.add_argument('--out', required=True, help='output bag folder (the .npz goes beside it)')
+
+    r = add('record', 'record live topics into an MCAP bag (raw bytes; counts printed)')
+    r.add_argument('topics', nargs='+')
+    r.add_argument('--out', required=True)
+    r.add_argument('--duration', type=float, default=0.0, help='seconds (0: until Ctrl-C)')
+    r.add_argument('--storage', choices=['mcap', 'sqlite3'], default='mcap')
+
+    rp = add('replay', 'publish a bag with its recorded timing')
+    rp.add_argument('bag')
+    rp.add_argument('--rate', type=float, default=1.0)
+    rp.add_argument('--loop', action='store_true')
+    rp.add_argument('--clock', action='store_true', help='publish /clock (use_sim_time)')
+    rp.add_argument('--topics', nargs='*', default=None)
+
+    pr = add('process', 'run the node pipeline offline over a bag (no DDS)')
+    pr.add_argument('bag')
+    pr.add_argument('--out', required=True, help='output bag folder')
+    pr.add_argument('--pipeline', default='tracker,reconstructor,registrar,scene_flow',
+                    help='comma-separated stages (default: all four)')
+    pr.add_argument('--params', default=None,
+                    help='folder with <node>.yaml parameter files (default: config/)')
+    pr.add_argument('--report', default=None, help='per-frame error report JSON')
+    pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
+    pr.add_argument('--no-progress', action='store_true')
+
+    t = add('topic', 'inspect live topics: list, echo, hz, info')
+    t.add_argument('action', choices=['list', 'echo', 'hz', 'info'])
+    t.add_argument('topic', nargs='?')
+    t.add_argument('-n', '--count', type=int, default=1, help='echo: messages to show')
+    t.add_argument('--seconds', type=float, default=3.0, help='hz/echo/list: how long to listen')
+
+    e = add('export', 'write PLY files and PNG renders of the clouds in a bag')
+    e.add_argument('bag')
+    e.add_argument('--out', required=True)
+    e.add_argument('--topic', default='nrsfm/points')
+    e.add_argument('--every', type=int, default=1, help='export every N-th cloud')
+
+    tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
+    tr.add_argument('frames')
+    tr.add_argument('--out', required=True)
+    tr.add_argument('--preset', default='medium', choices=['ultrafast', 'fast', 'medium'])
+    tr.add_argument('--stride', type=int, default=2)
+    tr.add_argument('--mask', default='texture', choices=['texture', 'full'])
+
+    rc = add('reconstruct', 'NRSfM on a tracks .npz (W 2FxP, optional V FxP) -> shapes.npz')
+    rc.add_argument('tracks')
+    rc.add_argument('--method', default='lowrank')
+    rc.add_argument('--rank', type=int, default=3)
+    rc.add_argument('--out', required=True)
+
+    rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
+    rg.add_argument('source')
+    rg.add_argument('target')
+    rg.add_argument('--method', default='icp')
+    rg.add_argument('--out', required=True)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return int(globals()[f'cmd_{args.verb}'](args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except (CliError, ValueError, FileNotFoundError, FileExistsError, LookupError,
+            RuntimeError, OSError) as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+
+
+# ------------------------------------------------------------------ verbs
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import (SAMPLE, ensure_sample, format_summary, load_ground_truth, run_live,
+                       summarise, write_summary)
+    out = Path(args.out)
+    bag, npz = ensure_sample(Path(args.bags))
+    print(f'sample bag: {bag}')
+    seq = load_ground_truth(npz)
+    out.mkdir(parents=True, exist_ok=True)
+    out_bag = out / 'outputs'
+    if out_bag.exists():
+        import shutil
+        shutil.rmtree(out_bag)
+    overrides = {'tracker': {'reliable': True},
+                 'reconstructor': {'mean_depth': SAMPLE.distance}}
+    live = run_live(bag, out_bag, seq.S.shape[0], args.rate, args.timeout, overrides)
+    summary = summarise(out_bag, seq, out)
+    summary['live'] = {k: v for k, v in live.items() if k != 'graph_exit'}
+    table = format_summary(summary, live)
+    write_summary(out, summary, table)
+    print(table)
+    print(f'outputs: {out_bag} (bag), {out}/summary.md, {out}/summary.json, PLY and PNG in {out}')
+    missing = [t for t in ('nrsfm/tracks', 'nrsfm/points', 'registration/aligned',
+                           'scene_flow/points') if summary['outputs'].get(t, 0) < seq.S.shape[0]]
+    if live.get('graph_exit'):
+        raise CliError(f"node(s) exited during the run: {live['graph_exit']}")
+    if missing:
+        raise CliError(f'outputs lost on {missing}: expected one per input frame')
+    return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split('x'))
+    except ValueError as err:
+        raise CliError(f'--size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240') from err
+    return w, h
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .io.sequence_bag import write_sequence_bag
+    from .io.synth import SynthConfig, generate
+    w, h = _size(args.size)
+    cfg = SynthConfig(surface=args.surface, width=w, height=h, frames=args.frames, fps=args.fps,
+                      seed=args.seed, noise=args.noise, stride=args.stride)
+    out = Path(args.out)
+    if out.exists():
+        raise CliError(f'{out} exists; choose another --out or delete it')
+    seq = generate(cfg)
+    counts = write_sequence_bag(seq, out)
+    npz = out.with_suffix('.npz')
+    np.savez_compressed(npz, **seq.npz_dict())
+    print(f'wrote {out} ({sum(counts.values())} messages) and {npz}')
+    for topic, n in counts.items():
+        print(f'  {topic}: {n}')
+    return 0
+
+
+def _rclpy_node(name: str) -> Any:
+    import rclpy
+    from rclpy.node import Node
+
+    from .live import ensure_loopback_env
+    ensure_loopback_env()
+    rclpy.init()
+    return Node(name)
+
+
+def _shutdown(node: Any) -> None:
+    import rclpy
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import time
+
+    import rclpy
+
+    from .live import Recorder
+    node = _rclpy_node('nrsfm_record')
+    rec = Recorder(node, args.topics, args.out, storage=args.storage)
+    end = time.monotonic() + args.duration if args.duration > 0 else float('inf')
+    try:
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        counts = rec.close()
+        _shutdown(node)
+    print(f'recorded {args.out}:')
+    for topic, n in counts.items():
+        print(f'  {topic}: {n} messages')
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .live import replay
+    node = _rclpy_node('nrsfm_replay')
+    try:
+        counts = replay(node, args.bag, rate=args.rate, loop=args.loop, clock=args.clock,
+                        topics=args.topics)
+    finally:
+        _shutdown(node)
+    for topic, n in counts.items():
+        print(f'  {topic}: {n} messages')
+    return 0
+
+
+def load_params(folder: str | None) -> dict[str, Any]:
+    """Parameter sets from <folder>/<node>.yaml (ROS params-file layout)."""
+    import yaml
+
+    from .live import package_root
+    from .params import NODE_PARAMS, from_mapping
+    base = Path(folder) if folder else package_root() / 'config'
+    out = {}
+    for name, cls in NODE_PARAMS.items():
+        path = base / f'{name}.yaml'
+        if not path.exists():
+            continue
+        doc = yaml.safe_load(path.read_text()) or {}
+        values = doc.get(name, {}).get('ros__parameters', {})
+        try:
+            out[name] = from_mapping(cls, values)
+        except ValueError as err:
+            raise CliError(f'{path}: {err}') from err
+    return out
+
+
+def cmd_process(args: argparse.Namespace) -> int:
+    from .pipeline import process_bag, write_report
+    stages = [s.strip() for s in args.pipeline.split(',') if s.strip()]
+    report = process_bag(args.bag, args.out, stages, load_params(args.params),
+                         progress=not args.no_progress, copy_inputs=args.copy_inputs)
+    d = report.as_dict()
+    if args.report:
+        write_report(report, args.report)
+    print(f"processed {sum(d['inputs'].values())} messages in {d['seconds']} s "
+          f"({d['realtime_factor']}x real time); outputs:")
+    for topic, n in d['outputs'].items():
+        print(f'  {topic}: {n}')
+    if d['failures']:
+        print(f"{len(d['failures'])} frame(s) could not be processed:")
+        for f in d['failures']:
+            print(f"  stamp {f['stamp_ns']} {f['stage']} ({f['topic']}): {f['error']}")
+        return 1
+    return 0
+
+
+def cmd_topic(args: argparse.Namespace) -> int:
+    import time
+
+    import rclpy
+
+    from .live import echo, hz, topic_types
+    if args.action != 'list' and not args.topic:
+        raise CliError(f'topic {args.action} needs a TOPIC')
+    node = _rclpy_node('nrsfm_topic')
+    try:
+        if args.action == 'list':
+            end = time.monotonic() + min(args.seconds, 2.0)
+            while time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.1)
+            for name, t in sorted(topic_types(node).items()):
+                print(f'{name} [{t}]')
+        elif args.action == 'echo':
+            if echo(node, args.topic, args.count, max(args.seconds, 5.0)) == 0:
+                raise CliError(f'no message on {args.topic} within {args.seconds} s')
+        elif args.action == 'hz':
+            r = hz(node, args.topic, args.seconds)
+            print(f"{args.topic}: {r['rate_hz']:.2f} Hz over {r['messages']} messages, "
+                  f"mean {r['mean_bytes'] / 1e3:.1f} kB")
+        else:
+            end = time.monotonic() + min(args.seconds, 2.0)
+            while time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.1)
+            name = args.topic if args.topic.startswith('/') else '/' + args.topic
+            types = topic_types(node)
+            if name not in types:
+                raise CliError(f'topic {name} not found')
+            print(f'{name}\n  type: {types[name]}\n'
+                  f'  publishers: {node.count_publishers(name)}\n'
+                  f'  subscribers: {node.count_subscribers(name)}')
+    finally:
+        _shutdown(node)
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .io import pointcloud2 as pc2
+    from .io.bag import deserialize, read_messages
+    from .io.export import render_png, write_ply
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.every < 1:
+        raise CliError('--every must be >= 1')
+    n = 0
+    for i, m in enumerate(read_messages(args.bag, [args.topic.lstrip('/')])):
+        if i % args.every:
+            continue
+        msg = deserialize(m.raw, m.msgtype)
+        X = pc2.read_xyz(msg, skip_nans=False)
+        rgb = pc2.unpack_rgb(pc2.read_points(msg).reshape(-1)['rgb']) \
+            if 'rgb' in pc2.field_names(msg) else None
+        write_ply(out / f'cloud_{i:04d}.ply', X, rgb)
+        render_png(out / f'cloud_{i:04d}.png', X, rgb)
+        n += 1
+    if n == 0:
+        raise CliError(f'no messages on {args.topic} in {args.bag}')
+    print(f'wrote {n} PLY + PNG pairs to {out}')
+    return 0
+
+
+def _read_frames(path: Path) -> list[np.ndarray]:
+    import cv2
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir()
+                       if p.suffix.lower() in ('.png', '.jpg', '.jpeg', '.bmp', '.ppm', '.pgm'))
+        frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+        bad = [str(f) for f, im in zip(files, frames) if im is None]
+        if bad:
+            raise CliError(f'could not read image(s): {bad[:3]}')
+        return frames
+    if not path.exists():
+        raise FileNotFoundError(f'{path} does not exist')
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    return frames
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from .core.tracking import ReferenceFlowTracker
+    frames = _read_frames(Path(args.frames))
+    if len(frames) < 2:
+        raise CliError(f'{args.frames}: need at least 2 frames, found {len(frames)}')
+    tracker = ReferenceFlowTracker(preset=args.preset, stride=args.stride, mask=args.mask)
+    uv, vis = [], []
+    for i, f in enumerate(frames):
+        if f.shape != frames[0].shape:
+            raise CliError(f'frame {i}: size {f.shape} differs from frame 0 {frames[0].shape}')
+        t = tracker.step(f)
+        uv.append(t.uv.T)
+        vis.append(t.visibility)
+    W = np.concatenate(uv).astype(np.float64)
+    np.savez_compressed(args.out, W=W, V=np.stack(vis), track_ids=tracker.ids)
+    print(f'wrote {args.out}: W {W.shape}, {len(frames)} frames x {W.shape[1]} tracks')
+    return 0
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from .core.nrsfm import METHODS, reconstruct
+    path = Path(args.tracks)
+    if not path.exists():
+        raise FileNotFoundError(f'{path} does not exist')
+    d = np.load(path)
+    if 'W' not in d.files:
+        raise CliError(f'{path}: no array named W (keys: {d.files})')
+    if args.method not in METHODS:
+        raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
+    kw = {} if args.method == 'rigid' else {'rank': args.rank}
+    res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
+    np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
+    print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '
+          f'{res.residual_px:.3g} px, {res.seconds:.2f} s)')
+    return 0
+
+
+def read_points_file(path: str) -> np.ndarray:
+    """PLY, ascii PCD, .npy or whitespace/comma-separated xyz text -> (N, 3)."""
+    from .io.export import read_ply
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f'{p} does not exist')
+    suffix = p.suffix.lower()
+    if suffix == '.ply':
+        X = read_ply(p)
+    elif suffix == '.npy':
+        X = np.load(p)
+    elif suffix == '.pcd':
+        lines = p.read_text().splitlines()
+        start = next((i for i, l in enumerate(lines) if l.startswith('DATA')), None)
+        if start is None or 'ascii' not in lines[start]:
+            raise CliError(f'{p}: only ascii PCD is supported')
+        X = np.loadtxt(lines[start + 1:], ndmin=2)[:, :3]
+    else:
+        text = p.read_text().replace(',', ' ')
+        X = np.loadtxt(text.splitlines(), ndmin=2)
+    X = np.asarray(X, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] < 3:
+        raise CliError(f'{p}: expected N x 3 points, got shape {X.shape}')
+    return X[:, :3]
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    from .core.registration import METHODS, register
+    if args.method not in METHODS:
+        raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
+    res = register(read_points_file(args.source), read_points_file(args.target),
+                   method=args.method)
+    np.savez_compressed(args.out, T_target_source=res.T_target_source, aligned=res.aligned,
+                        displacement=res.displacement, correspondences=res.correspondences)
+    print(json.dumps({'method': res.method, 'iterations': res.iterations,
+                      'converged': res.converged, 'residual': res.residual,
+                      'fitness': res.fitness, 'seconds': round(res.seconds, 3)}))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,241 @@
+"""``nrsfm-ros demo``: the main job on the embedded sample.
+
+Generates (or reuses) the sample bag in bags/, starts the live graph as separate processes,
+replays the bag into it, records every output topic, then writes a summary (frames in/out,
+reconstruction e3D against ground truth, registration and scene-flow errors, per-node latency),
+PLY files and PNG renders under the output folder.
+"""
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .core.metrics import e3d_frobenius, relative_epe, rotation_error_deg
+from .io import pointcloud2 as pc2
+from .io.bag import deserialize, read_messages
+from .io.export import render_png, write_ply
+from .io.msgtypes import stamp_ns
+from .io.sequence_bag import write_sequence_bag
+from .io.synth import SynthConfig, SynthSequence, generate, scene_flow_ground_truth
+from .processing import TOPICS, transform_matrix
+
+OUTPUTS = {TOPICS[k]: t for k, t in [
+    ('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image'),
+    ('points', 'sensor_msgs/msg/PointCloud2'), ('aligned', 'sensor_msgs/msg/PointCloud2'),
+    ('transform', 'geometry_msgs/msg/TransformStamped'),
+    ('displacement', 'sensor_msgs/msg/PointCloud2'),
+    ('scene_flow', 'sensor_msgs/msg/PointCloud2'),
+    ('markers', 'visualization_msgs/msg/MarkerArray'),
+    ('diagnostics', 'diagnostic_msgs/msg/DiagnosticArray')]}
+
+SAMPLE = SynthConfig(surface='flag', width=256, height=192, frames=60, fps=10.0, seed=0)
+
+
+def sample_paths(bags_dir: Path, cfg: SynthConfig = SAMPLE) -> tuple[Path, Path]:
+    stem = f'sample_{cfg.surface}_{cfg.width}x{cfg.height}_{cfg.frames}f_s{cfg.seed}'
+    return bags_dir / stem, bags_dir / f'{stem}.npz'
+
+
+def ensure_sample(bags_dir: Path, cfg: SynthConfig = SAMPLE) -> tuple[Path, Path]:
+    """Generate the sample bag + ground-truth npz once; reuse them afterwards."""
+    bag, npz = sample_paths(bags_dir, cfg)
+    if bag.exists() and npz.exists():
+        return bag, npz
+    bags_dir.mkdir(parents=True, exist_ok=True)
+    seq = generate(cfg)
+    np.savez_compressed(npz, **seq.npz_dict())
+    if bag.exists():
+        import shutil
+        shutil.rmtree(bag)
+    write_sequence_bag(seq, bag)
+    return bag, npz
+
+
+def load_ground_truth(npz: Path) -> SynthSequence:
+    d = np.load(npz)
+    cfg = SynthConfig(surface=str(d['surface']), width=d['images'].shape[2],
+                      height=d['images'].shape[1], frames=d['images'].shape[0],
+                      fps=float(d['fps']))
+    return SynthSequence(config=cfg, images=d['images'], depth=d['depth'], K=d['K'],
+                         T_camera_world=d['T_camera_world'], stamps_ns=d['stamps_ns'],
+                         track_ids=d['track_ids'], W=d['W'], V=d['V'], S=d['S'],
+                         S_world=d['S_world'])
+
+
+def run_live(bag: Path, out_bag: Path, frames: int, rate: float, timeout: float,
+             overrides: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Start the graph, replay ``bag`` into it, record every output; returns counts."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from .live import Graph, Recorder, ensure_loopback_env, replay
+    ensure_loopback_env()
+    graph = Graph(overrides=overrides)
+    rclpy.init()
+    node = Node('nrsfm_demo')
+    recorder = Recorder(node, list(OUTPUTS), out_bag, known_types=OUTPUTS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    result: dict[str, Any] = {'graph_exit': {}}
+    try:
+        # discovery: every pipeline input and output is matched before data flows
+        need = {'/camera/image_raw': 1, '/nrsfm/tracks': 2, '/nrsfm/points': 3,
+                '/registration/reference': 1}
+        end = time.monotonic() + 30
+        while time.monotonic() < end:
+            if graph.poll():
+                raise RuntimeError(f'a node died during start-up: {graph.poll()}')
+            ok = all(node.count_subscribers(t) >= n for t, n in need.items()) and all(
+                node.count_publishers(t) >= 1 for t in OUTPUTS)
+            if ok:
+                break
+            time.sleep(0.1)
+        else:
+            raise RuntimeError('the node graph did not come up within 30 s')
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        result['replayed'] = replay(node, bag, rate=rate,
+                                    wait_subscribers={'camera/image_raw': 1})
+        expect = {TOPICS['points']: frames, TOPICS['aligned']: frames,
+                  TOPICS['scene_flow']: frames, TOPICS['tracks']: frames}
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not graph.poll():
+            if all(recorder.counts.get('/' + t, 0) >= n for t, n in expect.items()):
+                break
+            time.sleep(0.1)
+        result['seconds'] = time.monotonic() - t0
+        time.sleep(1.2)  # one more diagnostics period
+    finally:
+        result['graph_exit'] = graph.poll()
+        graph.stop()
+        executor.shutdown()
+        result['recorded'] = recorder.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return result
+
+
+def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any]:
+    """Accuracy and latency of the recorded outputs against the ground truth."""
+    stamps = {int(s): i for i, s in enumerate(seq.stamps_ns)}
+    id_index = {int(t): i for i, t in enumerate(seq.track_ids)}
+    counts: dict[str, int] = {}
+    recon: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    flows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    transforms: dict[int, np.ndarray] = {}
+    residuals: list[float] = []
+    latency: dict[str, float] = {}
+    reference = seq.S[0]
+    from scipy.spatial import cKDTree
+    ref_tree = cKDTree(reference)
+    for m in read_messages(out_bag):
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+        if m.topic == TOPICS['points']:
+            msg = deserialize(m.raw, m.msgtype)
+            f = stamps.get(stamp_ns(msg.header))
+            if f is not None:
+                recon[f] = (pc2.read_xyz(msg, False),
+                            pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0],
+                            pc2.unpack_rgb(pc2.read_points(msg).reshape(-1)['rgb']))
+        elif m.topic == TOPICS['scene_flow']:
+            msg = deserialize(m.raw, m.msgtype)
+            f = stamps.get(stamp_ns(msg.header))
+            if f is not None:
+                flows[f] = (pc2.read_fields(msg, ('vx', 'vy', 'vz'), np.float64),
+                            pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0])
+        elif m.topic == TOPICS['aligned']:
+            msg = deserialize(m.raw, m.msgtype)
+            residuals.append(float(np.sqrt(np.mean(ref_tree.query(pc2.read_xyz(msg))[0] ** 2))))
+        elif m.topic == TOPICS['transform']:
+            msg = deserialize(m.raw, m.msgtype)
+            f = stamps.get(stamp_ns(msg.header))
+            if f is not None:
+                transforms[f] = transform_matrix(msg)
+        elif m.topic == TOPICS['diagnostics'].lstrip('/'):
+            msg = deserialize(m.raw, m.msgtype)
+            for st in msg.status:
+                vals = {kv.key: kv.value for kv in st.values}
+                if 'latency_ms' in vals and float(vals.get('processed', 0)) > 0:
+                    latency[st.hardware_id] = float(vals['latency_ms'])
+    summary: dict[str, Any] = {'frames_in': int(seq.S.shape[0]), 'outputs': counts}
+    if recon:
+        frames = sorted(recon)
+        ids = recon[frames[0]][1]
+        cols = np.array([id_index.get(int(i), -1) for i in ids])
+        keep = cols >= 0
+        S = np.stack([recon[f][0][keep] for f in frames])
+        S_gt = seq.S[frames][:, cols[keep]]
+        summary['e3d_B_frame'] = e3d_frobenius(S, S_gt, 'frame')
+        summary['e3d_B_frame_scaled'] = e3d_frobenius(S, S_gt, 'frame', scale=True)
+        summary['points_per_frame'] = int(ids.size)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for f in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
+            X, _, rgb = recon[f]
+            write_ply(out_dir / f'points_{f:03d}.ply', X, rgb)
+            render_png(out_dir / f'points_{f:03d}.png', X, rgb)
+            render_png(out_dir / f'depth_{f:03d}.png', X)
+            render_png(out_dir / f'ground_truth_{f:03d}.png', seq.S[f])
+    if transforms:
+        errs = []
+        R0 = seq.T_camera_world[0, :3, :3]
+        for f, T in transforms.items():
+            R_true = R0 @ seq.T_camera_world[f, :3, :3].T
+            errs.append(rotation_error_deg(T[:3, :3], R_true))
+        summary['registration_rotation_error_deg_median'] = float(np.median(errs))
+    if residuals:
+        summary['registration_rmse_m'] = float(np.mean(residuals))
+    if flows:
+        epes = []
+        for f, (v, ids) in flows.items():
+            if f == 0:
+                continue
+            cols = np.array([id_index.get(int(i), -1) for i in ids])
+            keep = cols >= 0
+            gt = scene_flow_ground_truth(seq, f)[cols[keep]]
+            epes.append(relative_epe(v[keep], gt))
+        if epes:
+            summary['scene_flow_relative_epe'] = float(np.mean(epes))
+    summary['latency_ms'] = latency
+    return summary
+
+
+def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str:
+    rows = [('frames in (camera/image_raw)', str(s['frames_in']))]
+    for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['aligned'], TOPICS['transform'],
+                  TOPICS['displacement'], TOPICS['scene_flow'], TOPICS['markers'],
+                  TOPICS['flow']):
+        rows.append((f'frames out ({topic})', str(s['outputs'].get(topic, 0))))
+    if 'e3d_B_frame' in s:
+        rows.append(('points per frame', str(s['points_per_frame'])))
+        rows.append(('e3D metric B, per-frame Procrustes', f"{s['e3d_B_frame']:.4f}"))
+        rows.append(('e3D metric B, per-frame Procrustes + scale',
+                     f"{s['e3d_B_frame_scaled']:.4f}"))
+    if 'registration_rmse_m' in s:
+        rows.append(('registration RMSE to reference (m)', f"{s['registration_rmse_m']:.4f}"))
+    if 'registration_rotation_error_deg_median' in s:
+        rows.append(('registration rotation error, median (deg)',
+                     f"{s['registration_rotation_error_deg_median']:.2f}"))
+    if 'scene_flow_relative_epe' in s:
+        rows.append(('scene flow relative EPE', f"{s['scene_flow_relative_epe']:.3f}"))
+    for node, ms in sorted(s.get('latency_ms', {}).items()):
+        rows.append((f'latency {node} (ms/message)', f'{ms:.1f}'))
+    if live and 'seconds' in live:
+        rows.append(('live graph wall time (s)', f"{live['seconds']:.1f}"))
+    w = max(len(r[0]) for r in rows)
+    lines = [f"| {'quantity':<{w}} | value |", f"|{'-' * (w + 2)}|-------|"]
+    lines += [f'| {a:<{w}} | {b} |' for a, b in rows]
+    return '\n'.join(lines)
+
+
+def write_summary(out_dir: Path, summary: dict[str, Any], table: str) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+    (out_dir / 'summary.md').write_text(table + '\n')

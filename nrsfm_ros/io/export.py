@@ -1,0 +1,94 @@
+"""PLY export and PNG renders of point clouds (no viewer needed)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def write_ply(path: str | Path, points: np.ndarray, rgb: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY with x, y, z (float32) and optional red, green, blue (uint8)."""
+    points = np.asarray(points, dtype=np.float32)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f'points: expected shape (N, 3), got {points.shape}')
+    cols = [('x', 'f4'), ('y', 'f4'), ('z', 'f4')]
+    if rgb is not None:
+        cols += [('red', 'u1'), ('green', 'u1'), ('blue', 'u1')]
+    arr = np.empty(points.shape[0], dtype=cols)
+    arr['x'], arr['y'], arr['z'] = points.T
+    if rgb is not None:
+        rgb = np.asarray(rgb, dtype=np.uint8)
+        arr['red'], arr['green'], arr['blue'] = rgb.T
+    header = ['ply', 'format binary_little_endian 1.0', f'element vertex {points.shape[0]}']
+    names = {'f4': 'float', 'u1': 'uchar'}
+    header += [f'property {names[t]} {n}' for n, t in cols] + ['end_header']
+    with open(path, 'wb') as fh:
+        fh.write(('\n'.join(header) + '\n').encode())
+        fh.write(arr.tobytes())
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """x, y, z (N, 3) float64 of a PLY vertex element (ascii or binary little-endian)."""
+    data = Path(path).read_bytes()
+    end = data.find(b'end_header')
+    if not data.startswith(b'ply') or end < 0:
+        raise ValueError(f'{path}: not a PLY file')
+    header = data[:end].decode('ascii', 'replace').splitlines()
+    body = data[data.index(b'\n', end) + 1:]
+    fmt = next((h.split()[1] for h in header if h.startswith('format')), '')
+    count, props, in_vertex = 0, [], False
+    types = {'float': 'f4', 'float32': 'f4', 'double': 'f8', 'float64': 'f8', 'uchar': 'u1',
+             'uint8': 'u1', 'char': 'i1', 'int8': 'i1', 'short': 'i2', 'int16': 'i2',
+             'ushort': 'u2', 'uint16': 'u2', 'int': 'i4', 'int32': 'i4', 'uint': 'u4',
+             'uint32': 'u4'}
+    for h in header:
+        parts = h.split()
+        if parts[:1] == ['element']:
+            in_vertex = parts[1] == 'vertex'
+            if in_vertex:
+                count = int(parts[2])
+        elif parts[:1] == ['property'] and in_vertex:
+            if parts[1] == 'list':
+                raise ValueError(f'{path}: list properties in the vertex element are unsupported')
+            props.append((parts[2], types[parts[1]]))
+    if fmt == 'ascii':
+        rows = body.decode().split('\n')[:count]
+        arr = np.array([r.split()[:len(props)] for r in rows], dtype=np.float64)
+        idx = [n for n, _ in props]
+        return arr[:, [idx.index('x'), idx.index('y'), idx.index('z')]]
+    if fmt != 'binary_little_endian':
+        raise ValueError(f'{path}: unsupported PLY format {fmt!r}')
+    dt = np.dtype([(n, '<' + t) for n, t in props])
+    arr = np.frombuffer(body[:dt.itemsize * count], dtype=dt)
+    return np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
+
+
+def render_png(path: str | Path, points: np.ndarray, rgb: np.ndarray | None = None,
+               size: int = 480, yaw_deg: float = 35.0, pitch_deg: float = 20.0) -> None:
+    """Orthographic splat render from an oblique viewpoint (so depth is visible), painter's
+    order, coloured by ``rgb`` or by depth."""
+    P = np.asarray(points, dtype=np.float64)
+    P = P[np.isfinite(P).all(axis=1)]
+    img = np.full((size, size, 3), 255, np.uint8)
+    if P.shape[0] == 0:
+        cv2.imwrite(str(path), img)
+        return
+    c = P - P.mean(axis=0)
+    y, p = np.radians(yaw_deg), np.radians(pitch_deg)
+    Ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    Rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
+    q = c @ (Rx @ Ry).T
+    ext = max(np.abs(q[:, :2]).max(), 1e-9)
+    uv = (q[:, :2] / ext * 0.45 * size + size / 2).astype(int)
+    if rgb is None:
+        d = (q[:, 2] - q[:, 2].min()) / max(np.ptp(q[:, 2]), 1e-9)
+        colours = cv2.applyColorMap((255 * d).astype(np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)
+        colours = colours[:, 0, :]
+    else:
+        colours = np.asarray(rgb, np.uint8)[np.isfinite(points).all(axis=1)][:, ::-1]
+    order = np.argsort(-q[:, 2])
+    r = max(1, size // 240)
+    for i in order:
+        cv2.circle(img, (int(uv[i, 0]), int(uv[i, 1])), r, colours[i].tolist(), -1)
+    cv2.imwrite(str(path), img)

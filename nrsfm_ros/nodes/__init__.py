@@ -1,0 +1,1 @@
+"""rclpy nodes: thin wrappers of the processors in nrsfm_ros.processing."""
