@@ -1,0 +1,56 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from nrsfm_ros.core.metrics import rotation_error_deg
+from nrsfm_ros.core.registration import register
+from nrsfm_ros.core.sceneflow import scene_flow
+
+
+def surface(n: int = 3000, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(-1, 1, (2, n))
+    return np.stack([u, v, 0.4 * np.sin(2 * u) * np.cos(1.5 * v) + 0.2 * u * v], axis=1)
+
+
+@pytest.mark.parametrize('method', ['icp', 'icp-point-to-plane'])
+def test_recovers_30_degrees(method):
+    X = surface()
+    R = Rotation.from_rotvec(np.radians(30) * np.array([0.3, 1.0, 0.2]) /
+                             np.linalg.norm([0.3, 1.0, 0.2])).as_matrix()
+    t = np.array([0.1, -0.2, 0.05])
+    src = (X - t) @ R  # target = R src + t
+    res = register(src, X, method=method, max_iterations=100, trim=1.0)
+    assert rotation_error_deg(res.T_target_source[:3, :3], R) < 0.5
+    assert np.allclose(res.T_target_source[:3, 3], t, atol=0.02)
+    assert res.residual < 1e-3
+
+
+@pytest.mark.parametrize('bad, match', [
+    (np.zeros((10, 2)), r'source: expected shape \(N, 3\)'),
+    (np.zeros((2, 3)), 'at least 3 points'),
+    (np.full((10, 3), np.nan), 'NaN'),
+])
+def test_validation(bad, match):
+    with pytest.raises(ValueError, match=match):
+        register(bad, surface(100))
+
+
+def test_scene_flow_removes_rigid_motion():
+    X = surface(500)
+    ids = np.arange(500, dtype=np.uint32)
+    R = Rotation.from_rotvec([0, 0.1, 0]).as_matrix()
+    warp = np.zeros_like(X)
+    bump = 0.1 * (X[:, 0] ** 2 + X[:, 1] ** 2)
+    warp[:, 2] = bump - bump.mean()  # non-rigid: no rotation or translation explains it
+    Y = (X + warp) @ R.T
+    sf = scene_flow(X, ids, Y[::-1], ids[::-1], dt=0.5, frame='object')
+    order = np.argsort(sf.ids)
+    # the recovered velocity is the non-rigid part, in the current frame
+    expected = (warp @ R.T) / 0.5
+    err = np.abs(sf.velocity[order] - expected).mean() / np.abs(expected).mean()
+    assert err < 0.3
+    raw = scene_flow(X, ids, Y, ids, dt=0.5, frame='camera')
+    np.testing.assert_allclose(raw.velocity, (Y - X) / 0.5)
