@@ -1,0 +1,69 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from nrsfm_ros.cli import EXAMPLES, main
+from nrsfm_ros.io.export import write_ply
+
+
+def run(*args):
+    return subprocess.run([sys.executable, '-m', 'nrsfm_ros.cli', *args], capture_output=True,
+                          text=True, timeout=120)
+
+
+@pytest.mark.parametrize('verb', sorted(EXAMPLES))
+def test_every_verb_has_help_with_example(verb, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([verb, '--help'])
+    assert e.value.code == 0
+    assert 'example: nrsfm-ros' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('args, text', [
+    (['reconstruct', 'missing.npz', '--out', 'x.npz'], 'does not exist'),
+    (['register', 'a.ply', 'b.ply', '--out', 'x.npz'], 'does not exist'),
+    (['synth', '--size', 'big', '--out', 'x'], '--size'),
+    (['track', 'missing_dir', '--out', 'x.npz'], 'does not exist'),
+])
+def test_bad_input_one_error_line(args, text, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    r = run(*args)
+    assert r.returncode != 0
+    lines = [line for line in r.stderr.strip().splitlines() if line]
+    assert len(lines) == 1 and lines[0].startswith('error:') and text in lines[0]
+
+
+def test_reconstruct_and_register_files(tmp_path):
+    sys.path.insert(0, str(__import__('pathlib').Path(__file__).parent))
+    from tests_helpers import low_rank_sequence
+    W, S, _ = low_rank_sequence(K=1, F=20, P=80)
+    np.savez(tmp_path / 'tracks.npz', W=W)
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'rigid', '--out',
+                 str(tmp_path / 'shapes.npz')]) == 0
+    out = np.load(tmp_path / 'shapes.npz')
+    assert out['S'].shape == (20, 80, 3) and out['R'].shape == (20, 3, 3)
+    np.savez(tmp_path / 'bad.npz', X=W)
+    assert main(['reconstruct', str(tmp_path / 'bad.npz'), '--out', 'y.npz']) == 2
+    X = S[0]
+    write_ply(tmp_path / 'a.ply', X)
+    np.save(tmp_path / 'b.npy', X + [0.1, 0, 0])
+    assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--out',
+                 str(tmp_path / 'r.npz')]) == 0
+    T = np.load(tmp_path / 'r.npz')['T_target_source']
+    np.testing.assert_allclose(T[:3, 3], [0.1, 0, 0], atol=1e-6)
+
+
+def test_track_on_image_folder(tmp_path):
+    import cv2
+
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    seq = generate(SynthConfig(surface='face', width=96, height=72, frames=5))
+    for i, im in enumerate(seq.images):
+        cv2.imwrite(str(tmp_path / f'{i:03d}.png'), im[..., ::-1])
+    assert main(['track', str(tmp_path), '--out', str(tmp_path / 't.npz')]) == 0
+    d = np.load(tmp_path / 't.npz')
+    assert d['W'].shape[0] == 10 and d['V'].shape == (5, d['W'].shape[1])

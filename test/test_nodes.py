@@ -1,0 +1,118 @@
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rclpy.parameter import Parameter
+
+HERE = Path(__file__).resolve().parent
+
+
+def spin_until(ctx, node, pred, timeout):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    end = time.monotonic() + timeout
+    while not pred() and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    ex.remove_node(node)
+    return pred()
+
+
+def test_two_process_100k_cloud_bytes_identical(rclpy_context):
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    sys.path.insert(0, str(HERE))
+    from pub_cloud import cloud
+    node = Node('sub_cloud', context=rclpy_context)
+    got = []
+    node.create_subscription(PointCloud2, 'test/cloud', got.append,
+                             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    proc = subprocess.Popen([sys.executable, str(HERE / 'pub_cloud.py')], env=dict(os.environ))
+    try:
+        assert spin_until(rclpy_context, node, lambda: len(got) >= 1, 25)
+    finally:
+        proc.wait(30)
+        node.destroy_node()
+    expected = cloud()
+    assert bytes(got[0].data) == bytes(expected.data)
+    assert got[0].width == 100_000 and got[0].point_step == 16
+
+
+def test_parameters_validated_on_set(rclpy_context):
+    from nrsfm_ros.nodes.common import ProcessorNode
+    from nrsfm_ros.processing import ReconstructorProcessor
+    node = ProcessorNode('reconstructor', ReconstructorProcessor,
+                         [('points', 'sensor_msgs/msg/PointCloud2')], context=rclpy_context)
+    try:
+        bad = node.set_parameters([Parameter('window', value=1)])[0]
+        assert not bad.successful and 'window=1' in bad.reason
+        bad = node.set_parameters([Parameter('mode', value='magic')])[0]
+        assert not bad.successful and 'mode' in bad.reason
+        ok = node.set_parameters([Parameter('window', value=12)])[0]
+        assert ok.successful and node.processor.params.window == 12
+    finally:
+        node.destroy_node()
+
+
+def test_malformed_message_counted_and_skipped(rclpy_context):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+
+    from nrsfm_ros.io import image as img_io
+    from nrsfm_ros.io.msgtypes import RclpyFactory
+    from sensor_msgs.msg import PointCloud2
+
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    from nrsfm_ros.nodes.common import RELIABLE, ProcessorNode
+    from nrsfm_ros.processing import TrackerProcessor
+    tracker = ProcessorNode('tracker', TrackerProcessor,
+                            [('tracks', 'sensor_msgs/msg/PointCloud2')], context=rclpy_context)
+    tracker.subscribe('image', 'sensor_msgs/msg/Image', RELIABLE)
+    probe = Node('probe', context=rclpy_context)
+    pub = probe.create_publisher(Image, 'camera/image_raw', 10)
+    tracks, diags = [], []
+    probe.create_subscription(PointCloud2, 'nrsfm/tracks', tracks.append, 10)
+    probe.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+    seq = generate(SynthConfig(surface='face', width=96, height=72, frames=3))
+    fac = RclpyFactory()
+    good = [img_io.array_to_image(im, 'rgb8', fac, i, 'cam') for i, im in enumerate(seq.images)]
+    bad = img_io.array_to_image(seq.images[0], 'rgb8', fac, 99, 'cam')
+    bad.encoding = 'yuv422'
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(tracker)
+    ex.add_node(probe)
+    try:
+        end = time.monotonic() + 10
+        while pub.get_subscription_count() < 1 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for m in [good[0], bad, good[1], good[2]]:
+            pub.publish(m)
+            ex.spin_once(timeout_sec=0.05)
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not (
+                len(tracks) >= 3 and any(_value(d, 'malformed') == '1' for d in diags)):
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown()
+        tracker.destroy_node()
+        probe.destroy_node()
+    assert len(tracks) == 3  # the malformed frame is skipped, the others processed
+    assert tracker.processor.stats.malformed == 1
+    assert any(_value(d, 'malformed') == '1' for d in diags)
+    assert 'encoding' in tracker.processor.stats.last_error
+
+
+def _value(diag, key):
+    for st in diag.status:
+        for kv in st.values:
+            if kv.key == key:
+                return kv.value
+    return None
