@@ -288,7 +288,7 @@ def cmd_topic(args: argparse.Namespace) -> int:
     node = _rclpy_node('nrsfm_topic')
     try:
         if args.action == 'list':
-            end = time.monotonic() + min(args.seconds, 2.0)
+            end = time.monotonic() + args.seconds
             while time.monotonic() < end:
                 rclpy.spin_once(node, timeout_sec=0.1)
             for name, t in sorted(topic_types(node).items()):
@@ -301,10 +301,11 @@ def cmd_topic(args: argparse.Namespace) -> int:
             print(f"{args.topic}: {r['rate_hz']:.2f} Hz over {r['messages']} messages, "
                   f"mean {r['mean_bytes'] / 1e3:.1f} kB")
         else:
-            end = time.monotonic() + min(args.seconds, 2.0)
-            while time.monotonic() < end:
-                rclpy.spin_once(node, timeout_sec=0.1)
             name = args.topic if args.topic.startswith('/') else '/' + args.topic
+            end = time.monotonic() + args.seconds
+            while time.monotonic() < end and name not in topic_types(node):
+                rclpy.spin_once(node, timeout_sec=0.1)
+            rclpy.spin_once(node, timeout_sec=0.3)  # let the endpoint counts settle
             types = topic_types(node)
             if name not in types:
                 raise CliError(f'topic {name} not found')

@@ -239,7 +239,7 @@ def hz(node: Any, topic: str, seconds: float) -> dict[str, float]:
     import rclpy
     from .io.msgtypes import rclpy_class
     topic = normalise(topic)
-    msgtype = _wait_type(node, topic, min(seconds, 5.0))
+    msgtype = _wait_type(node, topic, 10.0)
     times: list[float] = []
     sizes: list[int] = []
     node.create_subscription(rclpy_class(msgtype), topic,
