@@ -100,7 +100,8 @@ class RegistrarParams(Params):
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
     try_reflection: bool = rule(True, None,
                                 'also try the depth-mirrored source (orthographic NRSfM has a '
-                                'depth reflection ambiguity) and keep the better fit')
+                                'depth reflection ambiguity) on the first cloud and every '
+                                '10th, and keep the better fit')
 
 
 @dataclass(frozen=True)

@@ -263,6 +263,7 @@ class RegistrarProcessor(Processor):
         self.reference: np.ndarray | None = None
         self.reference_frame = ''
         self.last_reflected = False
+        self._checks = 0
 
     def set_params(self, params: RegistrarParams) -> None:
         self.params = params
@@ -290,15 +291,20 @@ class RegistrarProcessor(Processor):
         p = self.params
         kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
                   max_points=p.max_points, target_tree=self._tree)
-        res = register(src, self.reference, method=p.method, **kw)
-        self.last_reflected = False
-        if p.try_reflection:
-            c = src.mean(axis=0)
-            mirrored = src.copy()
-            mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
+        # The depth reflection of the reconstruction is consistent between windows, so both
+        # hypotheses are tried only on the first cloud and every 10th after.
+        c = src.mean(axis=0)
+        mirrored = src.copy()
+        mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
+        if p.try_reflection and (self._checks % 10 == 0):
+            res = register(src, self.reference, method=p.method, **kw)
             alt = register(mirrored, self.reference, method=p.method, **kw)
-            if alt.residual < res.residual:
-                res, self.last_reflected = alt, True
+            self.last_reflected = alt.residual < res.residual
+            res = alt if self.last_reflected else res
+        else:
+            res = register(mirrored if self.last_reflected else src, self.reference,
+                           method=p.method, **kw)
+        self._checks += 1
         self.last_result = res
         stamp = stamp_ns(msg.header)
         frame = self.reference_frame or str(msg.header.frame_id)
