@@ -212,6 +212,11 @@ class ReconstructorProcessor(Processor):
             shapes = [(fs.S, fs.scale, fs.t) for fs in self.window.push(uv, vis)]
         else:
             shapes = self._batch()
+        return self._emit(shapes, ids)
+
+    def _emit(self, shapes: list[tuple[np.ndarray, float, np.ndarray]], ids: np.ndarray
+              ) -> list[Output]:
+        """One nrsfm/points cloud per shape, for the oldest pending frames."""
         out: list[Output] = []
         K = self._intrinsics()
         for S, scale, t in shapes:
@@ -241,15 +246,7 @@ class ReconstructorProcessor(Processor):
             shapes = self._batch()
         finally:
             self.params = saved
-        out: list[Output] = []
-        K = self._intrinsics()
-        for S, scale, t in shapes:
-            stamp, frame, _, _, rgb_f = self._pending.popleft()
-            X = to_metric(S, scale, t, K, self.params.mean_depth).astype(np.float32)
-            out.append((TOPICS['points'], PC2, pc2.to_msg(
-                {'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb_f, 'track_id': self._ids},
-                self.factory, stamp, frame)))
-        return out
+        return self._emit(shapes, self._ids)
 
 
 class RegistrarProcessor(Processor):
