@@ -92,7 +92,8 @@ from nrsfm_ros.io import pointcloud2 as pc2
 from nrsfm_ros.io.msgtypes import RclpyFactory
 n = int(sys.argv[1]); count = 60
 rclpy.init(); node = Node('bench_pub')
-pub = node.create_publisher(PointCloud2, 'bench/cloud', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+pub = node.create_publisher(PointCloud2, 'bench/cloud', qos)
 end = time.monotonic() + 20
 while pub.get_subscription_count() < 1 and time.monotonic() < end: time.sleep(0.02)
 time.sleep(0.5)

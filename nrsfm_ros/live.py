@@ -94,7 +94,7 @@ class Graph:
             while True:
                 dead = self.poll()
                 if dead:
-                    codes = self.stop()
+                    self.stop()
                     bad = {n: c for n, c in dead.items() if c != 0}
                     for n, c in bad.items():
                         sys.stderr.write(f'error: node {n} exited with code {c}\n')
@@ -184,7 +184,7 @@ class Recorder:
 def replay(node: Any, bag: str | Path, rate: float = 1.0, loop: bool = False,
            clock: bool = False, topics: Sequence[str] | None = None,
            wait_subscribers: dict[str, int] | None = None, stop: threading.Event | None = None,
-           on_message: Callable[[str, int], None] | None = None) -> dict[str, int]:
+           ) -> dict[str, int]:
     """Publish a bag's raw messages with the recorded timing (scaled by ``rate``).
 
     ``clock`` publishes /clock with the bag time (for ``use_sim_time``).  ``wait_subscribers``
@@ -226,8 +226,6 @@ def replay(node: Any, bag: str | Path, rate: float = 1.0, loop: bool = False,
                                                    nanosec=m.stamp_ns % 1_000_000_000)))
             pubs[m.topic].publish(m.raw)
             counts[m.topic] = counts.get(m.topic, 0) + 1
-            if on_message is not None:
-                on_message(m.topic, m.stamp_ns)
         if not loop:
             return counts
 

@@ -22,7 +22,8 @@ from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
 from .io.msgtypes import MsgFactory, stamp_ns
-from .params import ReconstructorParams, RegistrarParams, SceneFlowParams, TrackerParams
+from .params import (Params, ReconstructorParams, RegistrarParams, SceneFlowParams,
+                     TrackerParams)
 
 Output = tuple[str, str, Any]
 
@@ -52,7 +53,6 @@ class Stats:
     last_error: str = ''
     latencies: deque = field(default_factory=lambda: deque(maxlen=100))
     stamps: deque = field(default_factory=lambda: deque(maxlen=100))
-    errors_by_stamp: dict = field(default_factory=dict)
 
     def rate_hz(self) -> float:
         if len(self.stamps) < 2:
@@ -65,11 +65,19 @@ class Stats:
 
 
 class Processor:
-    name = 'processor'
+    """Base: holds the factory, the parameter set (``params_cls`` defaults) and the stats."""
 
-    def __init__(self, factory: MsgFactory) -> None:
+    name = 'processor'
+    params_cls: type[Params] = Params
+
+    def __init__(self, factory: MsgFactory, params: Params | None = None) -> None:
         self.factory = factory
+        self.params: Any = params or self.params_cls()
         self.stats = Stats()
+
+    def set_params(self, params: Params) -> None:
+        """Apply a validated parameter set (subclasses rebuild state where it depends on it)."""
+        self.params = params
 
     def handle(self, kind: str, msg: Any) -> list[Output]:
         """Dispatch ``msg`` of input ``kind``; counts, times and records errors."""
@@ -81,10 +89,6 @@ class Processor:
         except MessageError as err:
             self.stats.malformed += 1
             self.stats.last_error = str(err)
-            try:
-                self.stats.errors_by_stamp[stamp_ns(msg.header)] = str(err)
-            except Exception:  # header itself unreadable
-                pass
             raise
         self.stats.latencies.append(time.perf_counter() - t0)
         self.stats.processed += 1
@@ -96,10 +100,10 @@ class TrackerProcessor(Processor):
     """camera image -> nrsfm/tracks (u, v, track_id, visibility, rgb) + nrsfm/flow."""
 
     name = 'tracker'
+    params_cls = TrackerParams
 
     def __init__(self, factory: MsgFactory, params: TrackerParams | None = None) -> None:
-        super().__init__(factory)
-        self.params = params or TrackerParams()
+        super().__init__(factory, params)
         self.tracker = self._make_tracker()
         self._rgb: np.ndarray | None = None
 
@@ -129,7 +133,6 @@ class TrackerProcessor(Processor):
         tf = self.tracker.step(grey)
         if first:
             rgb = img_io.to_rgb8(arr, encoding)
-            h, w = grey.shape
             ids = self.tracker.ids.astype(np.int64)
             self._rgb = pc2.pack_rgb(rgb.reshape(-1, 3)[ids])
         stamp, frame = stamp_ns(header), str(header.frame_id)
@@ -163,10 +166,10 @@ class ReconstructorProcessor(Processor):
     """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id), one cloud per tracks message."""
 
     name = 'reconstructor'
+    params_cls = ReconstructorParams
 
     def __init__(self, factory: MsgFactory, params: ReconstructorParams | None = None) -> None:
-        super().__init__(factory)
-        self.params = params or ReconstructorParams()
+        super().__init__(factory, params)
         self.K: np.ndarray | None = None
         self._reset()
 
@@ -253,17 +256,14 @@ class RegistrarProcessor(Processor):
     """nrsfm/points + registration/reference -> aligned cloud, transform, displacement."""
 
     name = 'registrar'
+    params_cls = RegistrarParams
 
     def __init__(self, factory: MsgFactory, params: RegistrarParams | None = None) -> None:
-        super().__init__(factory)
-        self.params = params or RegistrarParams()
+        super().__init__(factory, params)
         self.reference: np.ndarray | None = None
         self.reference_frame = ''
         self.last_reflected = False
         self._checks = 0
-
-    def set_params(self, params: RegistrarParams) -> None:
-        self.params = params
 
     def on_reference(self, msg: Any) -> list[Output]:
         ref = pc2.read_xyz(msg)
@@ -302,7 +302,6 @@ class RegistrarProcessor(Processor):
             res = register(mirrored if self.last_reflected else src, self.reference,
                            method=p.method, **kw)
         self._checks += 1
-        self.last_result = res
         stamp = stamp_ns(msg.header)
         frame = self.reference_frame or str(msg.header.frame_id)
         A = res.aligned.astype(np.float32)
@@ -345,14 +344,11 @@ class SceneFlowProcessor(Processor):
     """nrsfm/points -> scene_flow/points (x, y, z, vx, vy, vz in m/s) + arrow markers."""
 
     name = 'scene_flow'
+    params_cls = SceneFlowParams
 
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
-        super().__init__(factory)
-        self.params = params or SceneFlowParams()
+        super().__init__(factory, params)
         self._prev: tuple[int, np.ndarray, np.ndarray] | None = None
-
-    def set_params(self, params: SceneFlowParams) -> None:
-        self.params = params
 
     def on_points(self, msg: Any) -> list[Output]:
         X = pc2.read_xyz(msg, skip_nans=False)

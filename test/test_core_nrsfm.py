@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.metrics import e3d_frobenius, e3d_normalized
 from nrsfm_ros.core.nrsfm import WindowNRSfM, reconstruct
-from tests_helpers import low_rank_sequence  # noqa: F401  (see test/tests_helpers.py)
+from tests_helpers import low_rank_sequence
 
 
 def test_rigid_exact_on_rigid_data():
@@ -66,7 +66,7 @@ def test_unknown_method():
         reconstruct(np.zeros((4, 10)), method='nope')
 
 
-def test_metric_A_reproduces_published_PTA(shared=None):
+def test_metric_A_reproduces_published_PTA():
     from conftest import shared_data
     d = np.load(shared_data('nrsfm', 'drink.npz'))
     assert abs(e3d_normalized(d['S_PTA_world'], d['S_world']) - 0.0250) < 5e-4

@@ -36,7 +36,6 @@ def test_write_read_identity(tmp_path):
 
 
 def test_replay_into_recorder_is_byte_identical(tmp_path, rclpy_context):
-    import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 

@@ -12,7 +12,6 @@ HERE = Path(__file__).resolve().parent
 
 
 def spin_until(ctx, node, pred, timeout):
-    import rclpy
     from rclpy.executors import SingleThreadedExecutor
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)

@@ -63,7 +63,8 @@ def array_to_image(img: np.ndarray, encoding: str, factory: MsgFactory, stamp_ns
     h, w = img.shape[:2]
     return factory.make('sensor_msgs/msg/Image', header=factory.header(stamp_ns, frame_id),
                         height=h, width=w, encoding=encoding, is_bigendian=0,
-                        step=w * channels * img.dtype.itemsize, data=img.reshape(-1).view(np.uint8))
+                        step=w * channels * img.dtype.itemsize,
+                        data=img.reshape(-1).view(np.uint8))
 
 
 def to_mono8(img: np.ndarray, encoding: str) -> np.ndarray:

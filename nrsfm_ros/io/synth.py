@@ -11,7 +11,7 @@ convention), sampled every ``stride`` pixels.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -59,7 +59,6 @@ class SynthSequence:
     V: np.ndarray               # (F, P) ground-truth visibility
     S: np.ndarray               # (F, P, 3) ground truth, camera optical frame, metres
     S_world: np.ndarray         # (F, P, 3) ground truth, world (object) frame
-    extra: dict = field(default_factory=dict)
 
     def npz_dict(self) -> dict[str, np.ndarray]:
         return {'images': self.images, 'depth': self.depth, 'K': self.K,

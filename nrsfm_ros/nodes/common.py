@@ -1,7 +1,6 @@
 """Shared node plumbing: parameters with on-set validation, QoS, diagnostics, error counting."""
 from __future__ import annotations
 
-import time
 from dataclasses import fields
 from typing import Any
 
@@ -55,12 +54,12 @@ class ProcessorNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
 
     def _on_set_parameters(self, changes: list[Any]) -> SetParametersResult:
-        params: Params = self.processor.params  # type: ignore[attr-defined]
+        params: Params = self.processor.params
         try:
             new = params.updated({p.name: p.value for p in changes})
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
-        self.processor.set_params(new)  # type: ignore[attr-defined]
+        self.processor.set_params(new)
         return SetParametersResult(successful=True)
 
     def subscribe(self, kind: str, msgtype: str, qos: QoSProfile) -> None:
@@ -107,15 +106,3 @@ def spin_node(make: Any, args: list[str] | None = None) -> int:
         rclpy.try_shutdown()
     return 0
 
-
-def wait_for(predicate: Any, timeout: float, node: Node | None = None) -> bool:
-    """Spin ``node`` (if given) until ``predicate()`` or timeout; discovery is not instant."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        if node is not None:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        else:
-            time.sleep(0.05)
-    return bool(predicate())

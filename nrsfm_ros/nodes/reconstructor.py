@@ -11,7 +11,7 @@ class ReconstructorNode(ProcessorNode):
     def __init__(self) -> None:
         super().__init__('reconstructor', ReconstructorProcessor,
                          [('points', 'sensor_msgs/msg/PointCloud2')])
-        qos = RELIABLE if self.processor.params.reliable else SENSOR  # type: ignore[attr-defined]
+        qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('tracks', 'sensor_msgs/msg/PointCloud2', qos)
         self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
 

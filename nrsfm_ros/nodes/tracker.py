@@ -10,8 +10,9 @@ from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
 class TrackerNode(ProcessorNode):
     def __init__(self) -> None:
         super().__init__('tracker', TrackerProcessor,
-                         [('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image')])
-        qos = RELIABLE if self.processor.params.reliable else SENSOR  # type: ignore[attr-defined]
+                         [('tracks', 'sensor_msgs/msg/PointCloud2'),
+                          ('flow', 'sensor_msgs/msg/Image')])
+        qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('image', 'sensor_msgs/msg/Image', qos)
         self.subscribe('image_compressed', 'sensor_msgs/msg/CompressedImage', qos)
 
