@@ -82,7 +82,7 @@ class ReconstructorParams(Params):
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K')
-    iterations: int = rule(20, _at_least(1), 'alternation iterations per window')
+    iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface (m) for metric output')
     focal_length_px: float = rule(0.0, _non_negative,
                                   'fx when no CameraInfo arrives (0: output '

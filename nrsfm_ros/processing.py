@@ -264,6 +264,7 @@ class RegistrarProcessor(Processor):
         self.reference_frame = ''
         self.last_reflected = False
         self._checks = 0
+        self._last_T: np.ndarray | None = None
 
     def on_reference(self, msg: Any) -> list[Output]:
         ref = pc2.read_xyz(msg)
@@ -299,9 +300,12 @@ class RegistrarProcessor(Processor):
             self.last_reflected = alt.residual < res.residual
             res = alt if self.last_reflected else res
         else:
+            # consecutive clouds move little: start from the previous frame's transform
+            init = 'centroid' if self._last_T is None else self._last_T
             res = register(mirrored if self.last_reflected else src, self.reference,
-                           method=p.method, **kw)
+                           method=p.method, init=init, **kw)
         self._checks += 1
+        self._last_T = res.T_target_source
         stamp = stamp_ns(msg.header)
         frame = self.reference_frame or str(msg.header.frame_id)
         A = res.aligned.astype(np.float32)
