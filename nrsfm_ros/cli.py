@@ -95,9 +95,17 @@ def _parser() -> argparse.ArgumentParser:
     tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
     tr.add_argument('frames')
     tr.add_argument('--out', required=True)
-    tr.add_argument('--preset', default='medium', choices=['ultrafast', 'fast', 'medium'])
-    tr.add_argument('--stride', type=int, default=2)
+    tr.add_argument('--method', default='mfof', choices=['mfof', 'reference'],
+                    help='mfof: multi-frame subspace flow + occlusion tensor (default); '
+                    'reference: DIS reference->frame seeded by the previous frame')
+    tr.add_argument('--preset', default='medium', choices=['ultrafast', 'fast', 'medium'],
+                    help='DIS preset of the data step (default medium)')
+    tr.add_argument('--stride', type=int, default=2, help='track every stride-th pixel')
     tr.add_argument('--mask', default='texture', choices=['texture', 'full'])
+    tr.add_argument('--rank', type=int, default=8, help='mfof: learned basis images (default 8)')
+    tr.add_argument('--window', type=int, default=20, help='mfof: refinement window (frames)')
+    tr.add_argument('--streaming', action='store_true',
+                    help='mfof: skip the two-sided batch pass (what the node publishes)')
 
     rc = add('reconstruct', 'NRSfM on a tracks .npz (W 2FxP, optional V FxP) -> shapes.npz')
     rc.add_argument('tracks')
@@ -365,21 +373,32 @@ def _read_frames(path: Path) -> list[np.ndarray]:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from .core.tracking import ReferenceFlowTracker
+    from .core.tracking import MFOFConfig, ReferenceFlowTracker, track_sequence
     frames = _read_frames(Path(args.frames))
     if len(frames) < 2:
         raise CliError(f'{args.frames}: need at least 2 frames, found {len(frames)}')
-    tracker = ReferenceFlowTracker(preset=args.preset, stride=args.stride, mask=args.mask)
-    uv, vis = [], []
     for i, f in enumerate(frames):
         if f.shape != frames[0].shape:
             raise CliError(f'frame {i}: size {f.shape} differs from frame 0 {frames[0].shape}')
-        t = tracker.step(f)
-        uv.append(t.uv.T)
-        vis.append(t.visibility)
-    W = np.concatenate(uv).astype(np.float64)
-    np.savez_compressed(args.out, W=W, V=np.stack(vis), track_ids=tracker.ids)
-    print(f'wrote {args.out}: W {W.shape}, {len(frames)} frames x {W.shape[1]} tracks')
+    if args.method == 'mfof':
+        cfg = MFOFConfig(preset=args.preset, stride=args.stride, mask=args.mask,
+                         rank=args.rank, window=args.window)
+        res = track_sequence(frames, cfg, smooth=not args.streaming)
+        W, V = res.W.astype(np.float64), res.V
+        np.savez_compressed(args.out, W=W, V=V, O=res.O, track_ids=res.ids,
+                            reselections=np.array(res.reselections, np.int64))
+        extra = f'; occlusion tensor O {res.O.shape}; {res.seconds:.2f} s'
+        if res.reselections:
+            extra += (f'; new reference at frame {res.reselections[0]}: later frames keep the '
+                      'first reference\'s tracks marked invisible')
+    else:
+        tracker = ReferenceFlowTracker(preset=args.preset, stride=args.stride, mask=args.mask)
+        out = [tracker.step(f) for f in frames]
+        W = np.concatenate([t.uv.T for t in out]).astype(np.float64)
+        V = np.stack([t.visibility for t in out])
+        np.savez_compressed(args.out, W=W, V=V, track_ids=tracker.ids)
+        extra = ''
+    print(f'wrote {args.out}: W {W.shape}, {len(frames)} frames x {W.shape[1]} tracks{extra}')
     return 0
 
 

@@ -66,13 +66,40 @@ def rule(default: Any, check: Callable[[Any], str | None] | None = None,
 
 @dataclass(frozen=True)
 class TrackerParams(Params):
+    method: str = rule('mfof', _one_of('mfof', 'reference'),
+                       'mfof: multi-frame subspace flow with occlusion tensor; reference: '
+                       'plain DIS reference->frame seeded by the previous frame')
     preset: str = rule('medium', _one_of(*PRESETS), 'OpenCV DIS preset of the flow data step')
     stride: int = rule(2, _at_least(1), 'track every stride-th reference pixel')
     mask: str = rule('texture', _one_of('texture', 'full'), 'which reference pixels to track')
     min_std: float = rule(4.0, _non_negative, 'texture mask: local intensity std threshold')
-    occlusion_threshold: float = rule(25.0, _positive, 'photometric residual for visibility 0')
+    rank: int = rule(8, _at_least(0), 'mfof: learned trajectory-basis images (plus 6 '
+                     'polynomial ones)')
+    window: int = rule(20, _at_least(3), 'mfof: frames in the subspace refinement window')
+    refine_every: int = rule(5, _at_least(1), 'mfof: re-fit the subspace every N frames')
+    subspace_weight: float = rule(0.3, _non_negative, 'mfof: pull of the subspace on visible '
+                                  'pixels (occluded ones follow it fully)')
+    spatial_sigma: float = rule(2.0, _non_negative, 'mfof: smoothing of the basis images (px)')
+    backward_preset: str = rule('fast', _one_of(*PRESETS), 'mfof: DIS preset of the backward '
+                                'flow for the forward-backward check')
+    fb_threshold: float = rule(2.0, _positive, 'mfof: forward-backward error (px) at '
+                               'occlusion probability 1/2')
+    residual_threshold: float = rule(14.0, _positive, 'mfof: high-pass warping residual at '
+                                     'occlusion probability 1/2')
+    outlier_px: float = rule(3.0, _non_negative, 'mfof: data further than this from the '
+                             'subspace loses weight (0: off)')
+    reselect_fraction: float = rule(0.35, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
+                                    'mfof: new reference when less of it stays visible')
+    reselect_patience: int = rule(3, _at_least(1), 'mfof: ... for this many frames in a row')
+    occlusion_threshold: float = rule(25.0, _positive, 'reference: photometric residual for '
+                                      'visibility 0')
     publish_flow: bool = rule(True, None, 'publish the dense flow image')
     reliable: bool = rule(False, None, 'reliable QoS on the camera input (default best effort)')
+
+    def mfof_config(self):
+        from .core.tracking.mfof import MFOFConfig
+        names = {f.name for f in fields(MFOFConfig)}
+        return MFOFConfig(**{k: v for k, v in self.as_dict().items() if k in names})
 
 
 @dataclass(frozen=True)
@@ -121,3 +148,20 @@ NODE_PARAMS: dict[str, type[Params]] = {
 def from_mapping(cls: type[Params], values: Mapping[str, Any]) -> Params:
     """Build and validate a parameter set from a mapping (YAML ros__parameters)."""
     return cls().updated(dict(values))
+
+
+def to_yaml(name: str) -> str:
+    """The config/<name>.yaml text: every parameter with its default and its doc line."""
+    import yaml
+    cls = NODE_PARAMS[name]
+    lines = [f'# {name} node parameters (same names in the core, the CLI and ROS).',
+             '# Used by launch_scripts/graph.sh and nrsfm-ros demo (--ros-args --params-file '
+             'this file).', f'{name}:', '  ros__parameters:']
+    for f in fields(cls):
+        doc = f.metadata.get('doc', '') if f.metadata else ''
+        if doc:
+            lines.append(f'    # {doc}')
+        value = yaml.safe_dump(getattr(cls(), f.name), default_flow_style=True).strip()
+        value = value.removesuffix('\n...').removesuffix('...').strip()
+        lines.append(f'    {f.name}: {value}')
+    return '\n'.join(lines) + '\n'

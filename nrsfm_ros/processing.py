@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from .core.nrsfm import WindowNRSfM, reconstruct
 from .core.registration import register
 from .core.sceneflow import scene_flow
-from .core.tracking import ReferenceFlowTracker
+from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
 from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
@@ -107,8 +107,10 @@ class TrackerProcessor(Processor):
         self.tracker = self._make_tracker()
         self._rgb: np.ndarray | None = None
 
-    def _make_tracker(self) -> ReferenceFlowTracker:
+    def _make_tracker(self) -> ReferenceFlowTracker | MFOFTracker:
         p = self.params
+        if p.method == 'mfof':
+            return MFOFTracker(p.mfof_config())
         return ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,
                                     min_std=p.min_std, occlusion_threshold=p.occlusion_threshold)
 
@@ -129,22 +131,24 @@ class TrackerProcessor(Processor):
         if ref is not None and grey.shape != ref.shape:
             raise MessageError('height/width', grey.shape,
                                f'image size changed from the reference {ref.shape}')
-        first = ref is None
         tf = self.tracker.step(grey)
-        if first:
+        ids = self.tracker.ids
+        if self._rgb is None or self._rgb.size != ids.size or tf.index == 0 \
+                or getattr(tf, 'reselected', False):
             rgb = img_io.to_rgb8(arr, encoding)
-            ids = self.tracker.ids.astype(np.int64)
-            self._rgb = pc2.pack_rgb(rgb.reshape(-1, 3)[ids])
+            self._rgb = pc2.pack_rgb(rgb.reshape(-1, 3)[ids.astype(np.int64) % grey.size])
         stamp, frame = stamp_ns(header), str(header.frame_id)
-        tracks = pc2.to_msg({'u': tf.uv[:, 0].astype(np.float32),
-                             'v': tf.uv[:, 1].astype(np.float32),
-                             'track_id': self.tracker.ids,
-                             'visibility': tf.visibility.astype(np.float32),
-                             'rgb': self._rgb}, self.factory, stamp, frame)
+        fields = {'u': tf.uv[:, 0].astype(np.float32), 'v': tf.uv[:, 1].astype(np.float32),
+                  'track_id': ids, 'visibility': tf.visibility.astype(np.float32),
+                  'rgb': self._rgb}
+        if isinstance(tf, MFOFFrame):
+            fields['occlusion'] = tf.occlusion.astype(np.float32)
+        tracks = pc2.to_msg(fields, self.factory, stamp, frame)
         out: list[Output] = [(TOPICS['tracks'], PC2, tracks)]
         if self.params.publish_flow:
             out.append((TOPICS['flow'], IMAGE,
-                        img_io.array_to_image(tf.flow, '32FC2', self.factory, stamp, frame)))
+                        img_io.array_to_image(np.ascontiguousarray(tf.flow, np.float32),
+                                              '32FC2', self.factory, stamp, frame)))
         return out
 
 

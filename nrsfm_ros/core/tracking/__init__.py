@@ -1,4 +1,10 @@
-"""Dense 2D point tracking (reference frame -> every frame)."""
+"""Dense 2D point tracking (reference frame -> every frame).
+
+``MFOFTracker`` (default): multi-frame subspace flow with an occlusion tensor, streaming with
+windowed refinement; ``track_sequence`` adds a two-sided batch pass.  ``ReferenceFlowTracker``:
+plain DIS reference->frame seeded by the previous frame (the baseline)."""
+from .mfof import MFOFConfig, MFOFFrame, MFOFTracker, TrackResult, track_sequence
 from .reference_flow import PRESETS, ReferenceFlowTracker, TrackFrame, texture_mask
 
-__all__ = ['PRESETS', 'ReferenceFlowTracker', 'TrackFrame', 'texture_mask']
+__all__ = ['PRESETS', 'MFOFConfig', 'MFOFFrame', 'MFOFTracker', 'ReferenceFlowTracker',
+           'TrackFrame', 'TrackResult', 'texture_mask', 'track_sequence']

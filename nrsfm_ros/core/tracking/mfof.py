@@ -41,11 +41,13 @@ class MFOFConfig:
     window: int = 20                # frames in the sliding refinement window
     refine_every: int = 5           # re-estimate the learned basis every N frames
     spatial_sigma: float = 2.0      # px, smoothing of the learned basis images (0: none)
-    subspace_weight: float = 1.0    # beta: pull of the subspace on visible pixels
-    fb_threshold: float = 1.0       # px, forward-backward error at occlusion probability 1/2
+    subspace_weight: float = 0.3    # beta: pull of the subspace on visible pixels
+    fb_threshold: float = 2.0       # px, forward-backward error at occlusion probability 1/2
     residual_threshold: float = 14.0  # high-pass intensity residual at probability 1/2
     huber_px: float = 2.0           # robust fit of the frame coefficients
     outlier_px: float = 3.0         # data further than this from the subspace loses weight
+    temporal_weight: float = 0.05   # pull of the coefficients towards the prediction
+    batch_rank: int = 4             # learned images in the two-sided batch pass
     backward: bool = True           # compute the frame->reference flow for the FB check
     backward_preset: str = 'fast'   # DIS preset of the backward flow (only checks consistency)
     reselect_fraction: float = 0.35  # new reference when less of the mask stays visible ...
@@ -61,8 +63,8 @@ class MFOFConfig:
                                  f'{sorted(PRESETS)}')
         if self.mask not in ('full', 'texture'):
             raise ValueError(f"mask={self.mask!r}: expected 'full' or 'texture'")
-        for name in ('rank', 'refine_every', 'reselect_patience', 'stride'):
-            if getattr(self, name) < (0 if name == 'rank' else 1):
+        for name in ('rank', 'batch_rank', 'refine_every', 'reselect_patience', 'stride'):
+            if getattr(self, name) < (0 if 'rank' in name else 1):
                 raise ValueError(f'{name}={getattr(self, name)}: too small')
         if self.window < 3:
             raise ValueError(f'window={self.window}: expected >= 3')
@@ -187,13 +189,19 @@ class MFOFTracker:
         self._since_refine = 0
         self._low_visible = 0
         self._flow = np.zeros((h, w, 2), np.float32)
+        self._offset = np.zeros((2, h * w), np.float32)
 
     # ------------------------------------------------------------------ per frame
+    def _predicted_q(self) -> np.ndarray | None:
+        if len(self._q) < 2:
+            return None
+        return 2 * self._q[-1] - self._q[-2]
+
     def _predict(self) -> np.ndarray:
         assert self._flow is not None
-        if len(self._q) < 2:
+        q = self._predicted_q()
+        if q is None:
             return self._flow
-        q = 2 * self._q[-1] - self._q[-2]
         h, w = self._shape
         return (q @ self.basis).T.reshape(h, w, 2)
 
@@ -212,6 +220,7 @@ class MFOFTracker:
             fb = _warp(back, self._gx, self._gy, flow) + flow
             fb = np.sqrt((fb ** 2).sum(-1))
             score = score + (fb / c.fb_threshold) ** 2
+        score = score * score       # sharp: ~0 for inliers, 1/2 at the thresholds
         occ = score / (1.0 + score)
         return occ.astype(np.float32), inside
 
@@ -240,11 +249,14 @@ class MFOFTracker:
         w_data = weight
         d = u.reshape(-1, 2).T
         B = self.basis
-        q = fit_coefficients(B, d, weight, c.huber_px, sample=self._sample)
+        q = fit_coefficients(B, d, weight, c.huber_px, sample=self._sample,
+                             prior=self._predicted_q(), prior_weight=c.temporal_weight)
         s = q @ B
+        prior = s + self._offset
         if self._learned.shape[0] and c.outlier_px > 0:
-            weight = weight / (1.0 + ((d - s) ** 2).sum(0) / c.outlier_px ** 2)
-        fused = (weight * d + c.subspace_weight * s) / (weight + c.subspace_weight + 1e-12)
+            weight = weight / (1.0 + ((d - prior) ** 2).sum(0) / c.outlier_px ** 2)
+        fused = (weight * d + c.subspace_weight * prior) / (weight + c.subspace_weight + 1e-12)
+        self._offset = fused - s
         self._q.append(q)
         if len(self._q) > 3:
             self._q.pop(0)
@@ -311,7 +323,11 @@ class MFOFTracker:
         self._set_learned(g.up(self._coarse))
         self._since_refine = 0
         # re-express the last frames' coefficients in the new basis (for the prediction)
-        self._q = [m @ self.basis.T for m in self._last_models]
+        self._q = [fit_coefficients(self.basis, m, np.ones(m.shape[1], np.float32),
+                                    iterations=0, sample=self._sample)
+                   for m in self._last_models]
+        # the per-pixel offset from the subspace, re-expressed in the new basis
+        self._offset = self._last_models[-1] - self._q[-1] @ self.basis
 
 @dataclass
 class TrackResult:
@@ -373,19 +389,29 @@ def _two_sided(tracker: MFOFTracker, hist: list) -> list[np.ndarray]:
     out: list[np.ndarray] = []
     coarse = None
     B = None
+    offset = np.zeros_like(hist[0][0])
     for k in range(n):
         if B is None or k % c.refine_every == 0:
+            B_old = B
             a = max(0, min(k - half, n - c.window))
             b = min(n, a + c.window)
             D = np.concatenate([h[2] for h in hist[a:b]])
             Wt = np.stack([h[3] for h in hist[a:b]])
-            coarse = fit_basis(D, Wt, g.fixed_small, c.rank, g.small, c.spatial_sigma / g.step,
+            coarse = fit_basis(D, Wt, g.fixed_small, c.batch_rank, g.small,
+                               c.spatial_sigma / g.step,
                                iterations=2 if coarse is not None else 4, start=coarse)
             B = np.ascontiguousarray(np.concatenate([g.fixed, g.up(coarse)]))
+            if B_old is not None:     # re-express the offsets in the new basis
+                q = fit_coefficients(B, out[-1], np.ones(B.shape[1], np.float32),
+                                     iterations=0, sample=tracker.history_sample)
+                offset = out[-1] - q @ B
         d, w = hist[k][0], hist[k][1]
         q = fit_coefficients(B, d, w, c.huber_px, sample=tracker.history_sample)
         s = q @ B
+        prior = s + offset
         if c.outlier_px > 0:
-            w = w / (1.0 + ((d - s) ** 2).sum(0) / c.outlier_px ** 2)
-        out.append((w * d + c.subspace_weight * s) / (w + c.subspace_weight + 1e-12))
+            w = w / (1.0 + ((d - prior) ** 2).sum(0) / c.outlier_px ** 2)
+        fused = (w * d + c.subspace_weight * prior) / (w + c.subspace_weight + 1e-12)
+        offset = fused - s
+        out.append(fused)
     return out

@@ -53,22 +53,32 @@ def smooth_images(B: np.ndarray, shape: tuple[int, int], sigma: float,
 
 def fit_coefficients(B: np.ndarray, d: np.ndarray, weight: np.ndarray,
                      huber_px: float = 2.0, iterations: int = 2, ridge: float = 1e-6,
-                     sample: np.ndarray | None = None) -> np.ndarray:
+                     sample: np.ndarray | None = None, prior: np.ndarray | None = None,
+                     prior_weight: float = 0.0) -> np.ndarray:
     """Per-frame coefficients q (2, R) with d ~= q B, by weighted least squares over pixels,
     robustified by ``iterations`` Huber IRLS steps on the per-pixel residual length.
 
     B (R, P) basis, d (2, P) measured displacement, weight (P,) data confidence in [0, 1];
-    ``sample`` optionally restricts the fit to a subset of pixel indices (speed)."""
+    ``sample`` optionally restricts the fit to a subset of pixel indices (speed).  ``prior``
+    (2, R) pulls the coefficients with ``prior_weight`` (relative to the information of a fully
+    visible frame), so components that the visible pixels do not determine (basis images living
+    under an occluder) follow the prior (the temporal prediction) instead of the noise."""
     if sample is not None:
         B, d, weight = B[:, sample], d[:, sample], weight[sample]
     w = weight.astype(np.float32)
     R = B.shape[0]
     q = np.zeros((2, R), np.float32)
+    mu = 0.0
+    if prior is not None and prior_weight > 0:
+        mu = prior_weight * float((B * B).sum()) / R
     for it in range(iterations + 1):
         Bw = B * w
         A = Bw @ B.T
-        A += (ridge * float(np.trace(A)) / R + 1e-12) * np.eye(R, dtype=np.float32)
-        q = np.linalg.solve(A, Bw @ d.T).T
+        A += (ridge * float(np.trace(A)) / R + mu + 1e-12) * np.eye(R, dtype=np.float32)
+        rhs = Bw @ d.T
+        if mu > 0:
+            rhs = rhs + mu * prior.T
+        q = np.linalg.solve(A, rhs).T
         if it == iterations:
             break
         r = np.sqrt(((q @ B - d) ** 2).sum(0))
@@ -98,8 +108,11 @@ def fit_basis(D: np.ndarray, weight: np.ndarray, fixed: np.ndarray, rank: int,
     if start is not None and start.shape == (rank, P):
         L = _orthonormal(start, fixed)         # warm start from the previous basis
     else:
-        model = initial if initial is not None else (D @ fixed.T) @ fixed
-        X = w2 * D + (1 - w2) * model
+        if initial is None:     # weighted fit of the fixed block, frame by frame
+            initial = np.concatenate([fit_coefficients(fixed, D[2 * f:2 * f + 2], weight[f],
+                                                       iterations=0) @ fixed
+                                      for f in range(N)])
+        X = w2 * D + (1 - w2) * initial
         X -= (X @ fixed.T) @ fixed
         _, evecs = np.linalg.eigh((X @ X.T).astype(np.float64))
         U = evecs[:, ::-1][:, :rank].astype(np.float32)
@@ -159,7 +172,7 @@ class GridSampler:
         return out
 
     def up(self, X: np.ndarray) -> np.ndarray:
-        """(K, h*w) -> (K, H*W), orthonormalised against the full-resolution fixed block."""
+        """(K, h*w) -> (K, H*W) (bilinear; not re-orthonormalised: fits use least squares)."""
         if self.step == 1:
             return X
         h, w = self.shape
@@ -168,20 +181,4 @@ class GridSampler:
         for k in range(X.shape[0]):
             out[k] = cv2.resize(X[k].reshape(hs, ws), (w, h),
                                 interpolation=cv2.INTER_LINEAR).ravel()
-        return _orthonormal(out, self.fixed)
-
-
-def fit_basis_coarse(sampler: GridSampler, D: np.ndarray, weight: np.ndarray, rank: int,
-                     sigma: float = 0.0, iterations: int = 3,
-                     initial: np.ndarray | None = None,
-                     start: np.ndarray | None = None) -> np.ndarray:
-    """``fit_basis`` on the sampler's coarse grid, returned at full resolution; ``start`` is the
-    previous full-resolution learned basis (warm start)."""
-    Ds = sampler.down(D)
-    ws = sampler.down(weight)
-    init = sampler.down(initial) if initial is not None else None
-    st = _orthonormal(sampler.down(start), sampler.fixed_small) if start is not None \
-        and start.shape[0] == rank else None
-    L = fit_basis(Ds, ws, sampler.fixed_small, rank, sampler.small, sigma / sampler.step,
-                  iterations, init, start=st)
-    return sampler.up(L)
+        return out
