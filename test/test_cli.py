@@ -67,3 +67,22 @@ def test_track_on_image_folder(tmp_path):
     assert main(['track', str(tmp_path), '--out', str(tmp_path / 't.npz')]) == 0
     d = np.load(tmp_path / 't.npz')
     assert d['W'].shape[0] == 10 and d['V'].shape == (5, d['W'].shape[1])
+    assert d['O'].shape == d['V'].shape and d['track_ids'].size == d['W'].shape[1]
+    assert main(['track', str(tmp_path), '--method', 'reference', '--streaming', '--out',
+                 str(tmp_path / 'r.npz')]) == 0
+    r = np.load(tmp_path / 'r.npz')
+    assert 'O' not in r.files and r['W'].shape[0] == 10
+    # the tracks follow the ground truth of the synthetic face
+    ids = d['track_ids'].astype(np.int64)
+    common, ia, ib = np.intersect1d(ids, seq.track_ids, return_indices=True)
+    err = np.hypot(d['W'][0::2, ia] - seq.W[0::2, ib], d['W'][1::2, ia] - seq.W[1::2, ib])
+    assert common.size > 100 and np.median(err[seq.V[:, ib] > 0]) < 0.5
+
+
+def test_track_rejects_bad_options(tmp_path, capsys):
+    import cv2
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f'{i}.png'), np.full((40, 50), 100 + i, np.uint8))
+    assert main(['track', str(tmp_path), '--rank', '-1', '--out', str(tmp_path / 't.npz')]) != 0
+    err = capsys.readouterr().err
+    assert 'rank=-1' in err and err.count('\n') == 1

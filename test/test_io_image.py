@@ -84,3 +84,29 @@ def test_corrupt_compressed():
 def test_wrong_array_for_encoding():
     with pytest.raises(ValueError, match='rgb8 needs dtype u1 with 3'):
         img_io.array_to_image(np.zeros((4, 4), np.uint8), 'rgb8', RosbagsFactory(), 0, '')
+
+
+def test_flo_round_trip_and_errors(tmp_path):
+    from nrsfm_ros.io.flo import endpoint_error, read_flo, write_flo
+    rng = np.random.default_rng(0)
+    flow = rng.normal(size=(7, 9, 2)).astype(np.float32)
+    flow[2, 3] = np.nan
+    write_flo(tmp_path / 'a.flo', flow)
+    back = read_flo(tmp_path / 'a.flo')
+    np.testing.assert_array_equal(np.isnan(back), np.isnan(flow))
+    np.testing.assert_array_equal(back[~np.isnan(back)], flow[~np.isnan(flow)])
+    assert endpoint_error(back + [3.0, 4.0], flow) == pytest.approx(5.0)
+    (tmp_path / 'b.flo').write_bytes(b'\x00' * 20)
+    with pytest.raises(ValueError, match='magic'):
+        read_flo(tmp_path / 'b.flo')
+    (tmp_path / 'c.flo').write_bytes((tmp_path / 'a.flo').read_bytes()[:-8])
+    with pytest.raises(ValueError, match='header says 9x7'):
+        read_flo(tmp_path / 'c.flo')
+
+
+def test_middlebury_ground_truth_reads():
+    from conftest import shared_data
+
+    from nrsfm_ros.io.flo import read_flo
+    gt = read_flo(shared_data('flow', 'middlebury', 'Venus', 'flow10.flo'))
+    assert gt.shape[2] == 2 and np.isfinite(gt).mean() > 0.9

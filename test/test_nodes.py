@@ -6,6 +6,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from rclpy.parameter import Parameter
 
 HERE = Path(__file__).resolve().parent
@@ -115,3 +116,72 @@ def _value(diag, key):
             if kv.key == key:
                 return kv.value
     return None
+
+
+def test_tracker_node_streams_mfof_tracks_with_occlusion(rclpy_context):
+    """Images in over rclpy -> one nrsfm/tracks per frame, same stamps, tracks on the true
+    positions, the occluder's points flagged by visibility and the occlusion field."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image, PointCloud2
+
+    from nrsfm_ros.io import image as img_io
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RclpyFactory, stamp_ns
+    from nrsfm_ros.io.synth_tracks import DeformConfig, generate_deforming
+    from nrsfm_ros.nodes.common import RELIABLE, ProcessorNode
+    from nrsfm_ros.processing import TrackerProcessor
+    seq = generate_deforming(DeformConfig(width=160, height=128, frames=20, seed=1,
+                                          occluder_frames=8, max_motion_px=25))
+    tracker = ProcessorNode('tracker', TrackerProcessor,
+                            [('tracks', 'sensor_msgs/msg/PointCloud2')], context=rclpy_context)
+    assert tracker.processor.params.method == 'mfof'
+    tracker.set_parameters([Parameter('mask', value='full'), Parameter('reliable', value=True)])
+    tracker.subscribe('image', 'sensor_msgs/msg/Image', RELIABLE)
+    probe = Node('probe_tracks', context=rclpy_context)
+    pub = probe.create_publisher(Image, 'camera/image_raw', 30)
+    got = []
+    probe.create_subscription(PointCloud2, 'nrsfm/tracks', got.append, 30)
+    fac = RclpyFactory()
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(tracker)
+    ex.add_node(probe)
+    try:
+        end = time.monotonic() + 10
+        while pub.get_subscription_count() < 1 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for i, im in enumerate(seq.images):
+            pub.publish(img_io.array_to_image(im, 'mono8', fac, 1000 + i, 'cam'))
+            for _ in range(3):
+                ex.spin_once(timeout_sec=0.02)
+        end = time.monotonic() + 20
+        while len(got) < 20 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown()
+        tracker.destroy_node()
+        probe.destroy_node()
+    assert [stamp_ns(m.header) for m in got] == [1000 + i for i in range(20)]
+    assert {'u', 'v', 'track_id', 'visibility', 'occlusion'} <= set(pc2.field_names(got[0]))
+    errs, vis_occ, vis_free = [], [], []
+    for f, m in enumerate(got):
+        uv = pc2.read_fields(m, ('u', 'v'), np.float64)
+        vis = pc2.read_fields(m, ('visibility',), np.float64)[:, 0]
+        ids = pc2.read_fields(m, ('track_id',), np.uint32)[:, 0].astype(np.int64)
+        gt = np.stack([seq.W[2 * f][ids], seq.W[2 * f + 1][ids]], 1)
+        ok = seq.V[f][ids]
+        errs.append(np.hypot(*(uv - gt)[ok].T).mean())
+        occ = seq.occluded[f][ids]
+        if occ.sum() > 50:
+            vis_occ.append(vis[occ].mean())
+            vis_free.append(vis[ok].mean())
+    assert np.mean(errs) < 0.6
+    assert vis_occ and np.mean(vis_occ) < 0.35 < 0.7 < np.mean(vis_free)
+
+
+def test_config_yaml_matches_parameter_defaults():
+    """config/<node>.yaml is what params.to_yaml writes: every parameter, its default, its doc."""
+    from nrsfm_ros.params import NODE_PARAMS, to_yaml
+    for name in NODE_PARAMS:
+        text = (HERE.parent / 'config' / f'{name}.yaml').read_text()
+        assert text == to_yaml(name), f'config/{name}.yaml is stale: regenerate with to_yaml'
