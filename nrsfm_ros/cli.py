@@ -21,7 +21,7 @@ EXAMPLES = {
              'nrsfm-ros topic hz camera/image_raw',
     'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
     'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
-    'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method lowrank --rank 3 --out shapes.npz',
+    'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method bmm --out shapes.npz',
     'register': 'nrsfm-ros register source.ply target.ply --method icp --out result.npz',
 }
 
@@ -109,8 +109,12 @@ def _parser() -> argparse.ArgumentParser:
 
     rc = add('reconstruct', 'NRSfM on a tracks .npz (W 2FxP, optional V FxP) -> shapes.npz')
     rc.add_argument('tracks')
-    rc.add_argument('--method', default='lowrank')
-    rc.add_argument('--rank', type=int, default=3)
+    rc.add_argument('--method', default='bmm',
+                    help='rigid, lowrank, bmm (default: Dai-Li-He cameras + nuclear-norm '
+                    'shapes) or smsr (DCT-smoothed tracks)')
+    rc.add_argument('--rank', type=int, default=None,
+                    help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
+                    'automatic, cameras averaged over K=2..6)')
     rc.add_argument('--out', required=True)
 
     rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
@@ -412,7 +416,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(f'{path}: no array named W (keys: {d.files})')
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
-    kw = {} if args.method == 'rigid' else {'rank': args.rank}
+    kw = {} if args.method == 'rigid' else \
+        {'rank': args.rank if args.rank is not None else (3 if args.method == 'lowrank' else 0)}
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '

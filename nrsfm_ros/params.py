@@ -105,10 +105,11 @@ class TrackerParams(Params):
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
     mode: str = rule('window', _one_of('window', 'batch'), 'sliding window or whole batches')
-    method: str = rule('lowrank', _one_of('lowrank', 'rigid'), 'NRSfM method (batch mode)')
+    method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr'),
+                       'NRSfM method (batch mode; bmm/smsr choose their motion rank)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
-    rank: int = rule(2, _at_least(1), 'shape basis rank K')
+    rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface (m) for metric output')
     focal_length_px: float = rule(0.0, _non_negative,

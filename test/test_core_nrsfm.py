@@ -79,3 +79,58 @@ def test_metrics_invariant_to_rotation_and_reflection():
     assert e3d_frobenius(S @ R.T, S, 'global') < 1e-10
     assert e3d_frobenius(2 * S @ R.T, S, 'frame', scale=True) < 1e-10
     assert e3d_normalized(S @ R.T, S) < 1e-10
+
+
+@pytest.mark.parametrize('method, kw', [('bmm', {}), ('bmm', {'rank': 1}),
+                                        ('smsr', {'dct_fraction': 1.0})])
+def test_prior_free_methods_exact_on_rigid_data(method, kw):
+    W, S, _ = low_rank_sequence(K=1)
+    res = reconstruct(W, method=method, **kw)
+    assert e3d_frobenius(res.S, S, 'global') < 1e-6
+
+
+def test_bmm_cameras_exact_on_noise_free_low_rank_data():
+    from nrsfm_ros.core.nrsfm.bmm import dai_rotations
+    from nrsfm_ros.core.nrsfm.factorization import _centre
+    W, _, R = low_rank_sequence(K=3)
+    Wc, _ = _centre(W, np.ones((60, 300)))
+    R2 = dai_rotations(Wc, np.ones((60, 300)), 3)
+    U, _, Vt = np.linalg.svd(np.einsum('fki,fkj->ij', R[:, :2], R2))
+    aligned = R[:, :2] @ (U @ Vt)
+    err = np.minimum(np.linalg.norm(aligned - R2, axis=(1, 2)),
+                     np.linalg.norm(aligned + R2, axis=(1, 2)))
+    assert err.max() < 1e-4
+
+
+def test_bmm_handles_missing_entries_and_validates():
+    W, S, _ = low_rank_sequence(K=1)
+    rng = np.random.default_rng(3)
+    V = (rng.random((S.shape[0], S.shape[1])) > 0.1).astype(float)
+    Wbad = W.copy()
+    Wbad[np.repeat(V == 0, 2, axis=0)] += 50.0  # garbage where invisible
+    res = reconstruct(Wbad, V, method='bmm')
+    assert np.isfinite(res.S).all() and e3d_frobenius(res.S, S, 'frame') < 0.2
+    with pytest.raises(ValueError, match='rank=9'):
+        reconstruct(W[:20], method='bmm', rank=9)
+    with pytest.raises(ValueError, match='dct_fraction'):
+        reconstruct(W, method='smsr', dct_fraction=0.0)
+
+
+# measured metric A (world frame for the Akhter sets) with the defaults, one parameter set for
+# all data; the targets (drink 0.020, pickup 0.060, stretch 0.050) are not met yet.
+MOCAP_A = {'drink': 0.0341, 'pickup': 0.1730, 'stretch': 0.1660, 'face': 0.0263,
+           'walking': 0.1208}
+
+
+@pytest.mark.parametrize('name', sorted(MOCAP_A))
+def test_bmm_accuracy_on_mocap(name):
+    from conftest import shared_data
+    d = np.load(shared_data('nrsfm', f'{name}.npz'))
+
+    def metric_a(res):
+        if 'S_world' in d.files:
+            return e3d_normalized(np.einsum('fji,fpj->fpi', res.R, res.S), d['S_world'])
+        return e3d_normalized(res.S, d['S'])
+    err = metric_a(reconstruct(d['W'], method='bmm'))
+    assert err <= MOCAP_A[name] * 1.05 + 1e-3
+    assert err < metric_a(reconstruct(d['W'], method='rigid'))

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from .bmm import bmm, smsr
 from .factorization import low_rank, rigid
 from .result import NRSfMResult, check_tracks
 from .window import WindowNRSfM
@@ -13,6 +14,8 @@ from .window import WindowNRSfM
 METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'rigid': rigid,
     'lowrank': low_rank,
+    'bmm': bmm,
+    'smsr': smsr,
 }
 
 

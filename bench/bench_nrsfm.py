@@ -1,0 +1,76 @@
+"""NRSfM benchmark (issue 3): dataset x method -> e3D (metric A and B) and seconds.
+
+    .venv/bin/python bench/bench_nrsfm.py [--json out.json]
+
+Data: ../shared/data/nrsfm (Akhter drink/pickup/stretch, Torresani face/walking).  Metric A
+(normalised mean 3D error, one global orthogonal alignment) in the world frame for the Akhter
+sets (our object-frame shapes R_f^T S_f against S_world), in the camera frame otherwise; metric B
+(Frobenius ratio) with one global rotation and with per-frame Procrustes, camera frame.  Every
+method runs with its defaults, one parameter set for all datasets.  Published anchors (metric A):
+BMM 0.0266 / 0.1731 / 0.1034, PTA 0.0250 / 0.2369 / 0.1088 on drink / pickup / stretch.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from nrsfm_ros.core.metrics import e3d_frobenius, e3d_normalized  # noqa: E402
+from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
+
+DATA = ROOT.parent / 'shared' / 'data' / 'nrsfm'
+DATASETS = ('drink', 'pickup', 'stretch', 'face', 'walking')
+METHODS = {'rigid': {}, 'lowrank': {'rank': 3}, 'bmm': {}, 'smsr': {}}
+ANCHORS = {'drink': (0.0266, 0.0250), 'pickup': (0.1731, 0.2369), 'stretch': (0.1034, 0.1088)}
+
+
+def run() -> list[dict]:
+    rows = []
+    for name in DATASETS:
+        d = np.load(DATA / f'{name}.npz')
+        for method, kw in METHODS.items():
+            t = time.perf_counter()
+            res = reconstruct(d['W'], method=method, **kw)
+            sec = time.perf_counter() - t
+            if 'S_world' in d.files:
+                a = e3d_normalized(np.einsum('fji,fpj->fpi', res.R, res.S), d['S_world'])
+            else:
+                a = e3d_normalized(res.S, d['S'])
+            rows.append({'dataset': name, 'method': method, 'F': d['W'].shape[0] // 2,
+                         'P': d['W'].shape[1], 'e3d_A': a,
+                         'e3d_B_global': e3d_frobenius(res.S, d['S'], 'global'),
+                         'e3d_B_frame': e3d_frobenius(res.S, d['S'], 'frame'),
+                         'seconds': sec})
+    return rows
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--json', default=None)
+    args = p.parse_args()
+    reconstruct(np.load(DATA / 'face.npz')['W'][:40], method='bmm')   # warm-up imports
+    rows = run()
+    print('| dataset (F x P) | method | e3D A | vs BMM (published) | e3D B global | '
+          'e3D B frame | seconds |')
+    print('|---|---|---|---|---|---|---|')
+    for r in rows:
+        anchor = ANCHORS.get(r['dataset'])
+        ratio = f"{r['e3d_A'] / anchor[0]:.2f}" if anchor else '-'
+        print(f"| {r['dataset']} ({r['F']} x {r['P']}) | {r['method']} | {r['e3d_A']:.4f} | "
+              f"{ratio} | {r['e3d_B_global']:.4f} | {r['e3d_B_frame']:.4f} | "
+              f"{r['seconds']:.2f} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,331 @@
+"""Prior-free NRSfM (Dai, Li, He; METHODS §1.3) and its scalable smoothed variant (SMSR, §3).
+
+Motion: from a rank-3K factorisation W ~= P_hat B_hat, one column triple G (3K x 3) of the
+corrective matrix makes every 2 x 3K block P_hat_f G scaled-orthonormal.  With Q = G G^T the
+conditions are linear in Q (a Q a^T - b Q b^T = 0, a Q b^T = 0 per frame, plus a scale);
+the rank-3 condition is relaxed to trace minimisation over the PSD cone.  We solve it by
+accelerated proximal gradient (FISTA): a gradient step on the squared constraint residuals, then
+the prox of the trace over the PSD cone (eigenvalue soft-thresholding) -- the dependency-free
+equivalent of the SDP.  Rotations are the polar factors of P_hat_f G with temporally consistent
+signs.
+
+Shapes (BMM): min_S 1/2 sum_fp v_fp ||w_fp - R_f s_fp||^2 + lam ||S#||_*, by ADMM with the
+splitting Z = S#: a closed-form per-point 3 x 3 least-squares step, singular value thresholding of
+F x 3P, a dual step, and a growing penalty.  Linear in P per iteration.
+
+SMSR: the same cameras and shapes on trajectory-smoothed measurements (projection of each point
+trajectory onto the first d DCT vectors), the cameras from the smoothed W, the shapes then fitted
+to the smoothed W.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.fft import dct, idct
+
+from .factorization import _centre, complete_rotations, impute_low_rank
+from .result import NRSfMResult, check_tracks
+
+
+# ------------------------------------------------------------------ cameras
+
+def _constraint_matrices(Phat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear constraints on vec(Q): rows for a Q a^T - b Q b^T and a Q b^T per frame (2F, n^2),
+    and the scale row (n^2,) = mean of (a Q a^T + b Q b^T) / 2."""
+    a, b = Phat[0::2], Phat[1::2]
+    n = a.shape[1]
+    aa = np.einsum('fi,fj->fij', a, a)
+    bb = np.einsum('fi,fj->fij', b, b)
+    ab = np.einsum('fi,fj->fij', a, b)
+    ab = (ab + ab.transpose(0, 2, 1)) / 2
+    A = np.concatenate([(aa - bb).reshape(-1, n * n), ab.reshape(-1, n * n)])
+    c0 = ((aa + bb) / 2).mean(axis=0).reshape(n * n)
+    return A, c0
+
+
+def metric_projection_Q(Phat: np.ndarray, trace_weight: float = 1e-3, iterations: int = 500,
+                        tol: float = 1e-12) -> np.ndarray:
+    """Trace-minimising PSD Q (n x n) satisfying the orthonormality constraints of every frame
+    in the least-squares sense, by FISTA with the PSD trace prox."""
+    A, c0 = _constraint_matrices(Phat)
+    n = Phat.shape[1]
+    m = A.shape[0]
+    w0 = float(m)                              # the scale constraint counts like all frames
+    H = A.T @ A + w0 * np.outer(c0, c0)
+    lin = w0 * c0
+    L = float(np.linalg.eigvalsh(H)[-1]) + 1e-12
+    step = 1.0 / L
+    gamma = trace_weight * L
+    Q = np.eye(n).ravel() / max(float(c0 @ np.eye(n).ravel()), 1e-12)
+    Y, t = Q.copy(), 1.0
+    for _ in range(iterations):
+        G = H @ Y - lin
+        Z = (Y - step * G).reshape(n, n)
+        Z = (Z + Z.T) / 2
+        lam, E = np.linalg.eigh(Z)
+        lam = np.maximum(lam - step * gamma, 0.0)
+        Qn = ((E * lam) @ E.T).ravel()
+        t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
+        Y = Qn + ((t - 1) / t_next) * (Qn - Q)
+        if np.linalg.norm(Qn - Q) <= tol * max(np.linalg.norm(Q), 1e-12):
+            Q = Qn
+            break
+        Q, t = Qn, t_next
+    return Q.reshape(n, n)
+
+
+def refine_G(Phat: np.ndarray, G0: np.ndarray) -> np.ndarray:
+    """Rank-3 polish of the relaxed solution: Levenberg-Marquardt on G (n x 3) for the
+    scale-normalised orthonormality residuals of every frame (exact on noise-free data)."""
+    from scipy.optimize import least_squares
+    a, b = Phat[0::2], Phat[1::2]
+    n = Phat.shape[1]
+
+    def resid(g: np.ndarray) -> np.ndarray:
+        G = g.reshape(n, 3)
+        aG, bG = a @ G, b @ G
+        na, nb = (aG ** 2).sum(1), (bG ** 2).sum(1)
+        mean = (na + nb).mean() / 2
+        return np.concatenate([(na - nb) / mean, 2 * (aG * bG).sum(1) / mean, [mean - 1.0]])
+
+    def jac(g: np.ndarray) -> np.ndarray:
+        G = g.reshape(n, 3)
+        aG, bG = a @ G, b @ G
+        na, nb = (aG ** 2).sum(1), (bG ** 2).sum(1)
+        m = (na + nb).mean() / 2
+        F = a.shape[0]
+        outer = lambda x, y: (x[:, :, None] * y[:, None, :]).reshape(F, -1)  # noqa: E731
+        dm = (outer(a, aG) + outer(b, bG)).mean(axis=0)
+        r1 = (na - nb) / m
+        r2 = 2 * (aG * bG).sum(1) / m
+        J1 = 2 * (outer(a, aG) - outer(b, bG)) / m - r1[:, None] * dm[None] / m
+        J2 = 2 * (outer(a, bG) + outer(b, aG)) / m - r2[:, None] * dm[None] / m
+        return np.vstack([J1, J2, dm[None]])
+
+    sol = least_squares(resid, G0.ravel(), jac=jac, method='lm', xtol=1e-12, ftol=1e-12,
+                        max_nfev=200 * (G0.size + 1))
+    return sol.x.reshape(n, 3)
+
+
+def consistent_signs(R2: np.ndarray) -> np.ndarray:
+    """Flip R_f -> -R_f (the sign of the coefficient) so consecutive frames agree."""
+    R2 = R2.copy()
+    for f in range(1, R2.shape[0]):
+        if float(np.sum(R2[f] * R2[f - 1])) < 0:
+            R2[f] = -R2[f]
+    return R2
+
+
+def dai_rotations(Wc: np.ndarray, V: np.ndarray, K: int, trace_weight: float = 1e-3
+                  ) -> np.ndarray:
+    """Orthographic cameras R2 (F, 2, 3) from centred tracks Wc (2F, P)."""
+    F, P = V.shape
+    if K < 1 or 9 * K > 2 * F + 1 or 3 * K > min(2 * F, P):
+        raise ValueError(f'rank={K}: the motion factorisation needs 9K <= 2F + 1 and '
+                         f'3K <= min(2F, P) (F={F}, P={P})')
+    X = impute_low_rank(Wc, V, 3 * K) if (V < 0.5).any() else Wc
+    U, s, _ = np.linalg.svd(X, full_matrices=False)
+    r = min(3 * K, s.size)
+    Phat = U[:, :r] * np.sqrt(s[:r])
+    Phat = Phat / np.sqrt(np.mean(Phat ** 2))        # unit scale helps the conditioning
+    Q = metric_projection_Q(Phat, trace_weight)
+    lam, E = np.linalg.eigh(Q)
+    G = refine_G(Phat, E[:, -3:] * np.sqrt(np.maximum(lam[-3:], 1e-12)))
+    M = (Phat @ G).reshape(F, 2, 3)
+    Uo, _, Vt = np.linalg.svd(M, full_matrices=False)
+    return consistent_signs(Uo @ Vt)
+
+
+AUTO_RANKS = (2, 3, 4, 5, 6)
+
+
+def averaged_rotations(Wc: np.ndarray, V: np.ndarray, ranks=AUTO_RANKS,
+                       trace_weight: float = 1e-3) -> np.ndarray:
+    """Cameras from several motion ranks K, aligned to the first by one orthogonal matrix and a
+    per-frame sign, averaged and re-orthonormalised.  Which K gives the best cameras varies by
+    sequence (measured on the mocap sets: up to 2x in e3D); the average is within reach of the
+    best single K everywhere, so the default needs no per-dataset rank."""
+    F, P = V.shape
+    r = exact_rank(impute_low_rank(Wc, V, 3 * max(ranks)) if (V < 0.5).any() else Wc)
+    ranks = [K for K in ranks if 9 * K <= 2 * F + 1 and 3 * K <= min(2 * F, P, r)] or \
+        [max(1, min(r // 3, (2 * F + 1) // 9))]
+    Rs = [dai_rotations(Wc, V, K, trace_weight) for K in ranks]
+    ref = Rs[0]
+    acc = np.zeros_like(ref)
+    for R2 in Rs:
+        U, _, Vt = np.linalg.svd(np.einsum('fki,fkj->ij', R2, ref))
+        R2 = R2 @ (U @ Vt)
+        acc += R2 * np.sign(np.einsum('fij,fij->f', R2, ref))[:, None, None]
+    U, _, Vt = np.linalg.svd(acc, full_matrices=False)
+    return consistent_signs(U @ Vt)
+
+
+# ------------------------------------------------------------------ shapes
+
+def _svt(X: np.ndarray, tau: float) -> np.ndarray:
+    """Singular value soft-thresholding of X (F, N), through the F x F Gram when F < N."""
+    F, N = X.shape
+    if F <= N:
+        lam, E = np.linalg.eigh(X @ X.T)
+        s = np.sqrt(np.maximum(lam, 0.0))
+        keep = s > tau
+        if not keep.any():
+            return np.zeros_like(X)
+        E, s = E[:, keep], s[keep]
+        return (E * ((s - tau) / s)) @ (E.T @ X)
+    lam, E = np.linalg.eigh(X.T @ X)
+    s = np.sqrt(np.maximum(lam, 0.0))
+    keep = s > tau
+    if not keep.any():
+        return np.zeros_like(X)
+    E, s = E[:, keep], s[keep]
+    return ((X @ E) * ((s - tau) / s)) @ E.T
+
+
+def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
+               iterations: int = 300, rho: float = 1e-3, rho_growth: float = 1.2,
+               rho_max: float = 1e6, tol: float = 1e-6,
+               init: np.ndarray | None = None) -> tuple[np.ndarray, int, bool]:
+    """Object-frame shapes (F, 3, P) minimising the visibility-weighted data term plus
+    ``lam`` x nuclear norm of S# (``lam`` relative to the data's RMS), by ADMM."""
+    F, P = V.shape
+    Wf = Wc.reshape(F, 2, P)
+    unit = max(float(np.sqrt(np.mean(Wf ** 2))), 1e-12)
+    Wf = Wf / unit
+    Gm = np.einsum('fki,fkj->fij', R2, R2)
+    ev, E = np.linalg.eigh(Gm)                          # (F, 3), (F, 3, 3)
+    RtW = (R2.transpose(0, 2, 1) @ Wf) * V[:, None, :]  # (F, 3, P)
+    # initial shapes: pseudo-inverse with zero depth
+    S = RtW.copy() if init is None else init / unit
+    Z = S.copy()
+    U = np.zeros_like(S)
+    tau = lam * np.sqrt(P)
+    it, converged = 0, False
+    for it in range(1, iterations + 1):
+        rhs = RtW + rho * (Z - U / rho)
+        coef = (E.transpose(0, 2, 1) @ rhs) / (rho + ev[:, :, None] * V[:, None, :])
+        S = E @ coef
+        Zn = _svt((S + U / rho).reshape(F, 3 * P), tau / rho).reshape(F, 3, P)
+        U = U + rho * (S - Zn)
+        r_primal = np.linalg.norm(S - Zn)
+        r_dual = rho * np.linalg.norm(Zn - Z)
+        Z = Zn
+        rho = min(rho * rho_growth, rho_max)
+        if it > 10 and max(r_primal, r_dual) <= tol * max(np.linalg.norm(Z), 1e-12):
+            converged = True
+            break
+    return Z * unit, it, converged
+
+
+def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: int = 1000,
+             tol: float = 1e-13) -> np.ndarray:
+    """Rank-K shapes consistent with the cameras: S_f = R_f^T W_f + n_f d_f^T (n_f the viewing
+    direction, d_f the unknown depths), alternating d_f from the rank-K projection of S# and
+    the projection itself (exact on noise-free rank-K data, where the nuclear norm's shrinkage
+    leaves a bias)."""
+    F, P = R2.shape[0], Wc.shape[1]
+    n = complete_rotations(R2)[:, 2]
+    A = R2.transpose(0, 2, 1) @ Wc.reshape(F, 2, P)
+    X = S
+    for _ in range(iterations):
+        d = np.einsum('fi,fip->fp', n, X)
+        X = A + n[:, :, None] * d[:, None, :]
+        Xs = X.reshape(F, 3 * P)
+        G = Xs @ Xs.T if F <= 3 * P else Xs.T @ Xs
+        E = np.linalg.eigh(G)[1][:, -K:]
+        Xn = ((E @ (E.T @ Xs)) if F <= 3 * P else (Xs @ E) @ E.T).reshape(F, 3, P)
+        change = float(np.linalg.norm(Xn - X)) / max(float(np.linalg.norm(Xn)), 1e-300)
+        X = Xn
+        if change < tol:
+            break
+    d = np.einsum('fi,fip->fp', n, X)
+    return A + n[:, :, None] * d[:, None, :]
+
+
+def exact_rank(Wc: np.ndarray, rel: float = 1e-8) -> int:
+    """Numerical rank of W (relative threshold): 3K on noise-free rank-K data."""
+    s = np.linalg.svd(Wc, compute_uv=False)
+    return int((s > rel * s[0]).sum())
+
+
+# ------------------------------------------------------------------ methods
+
+def _finish(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, S_obj: np.ndarray, t: np.ndarray,
+            method: str, rank: int, it: int, conv: bool, t0: float) -> NRSfMResult:
+    F, P = V.shape
+    R = complete_rotations(R2)
+    S_cam = np.einsum('fij,fjp->fpi', R, S_obj)
+    pred = R2 @ S_obj
+    d = np.linalg.norm(Wc.reshape(F, 2, P) - pred, axis=1)
+    resid = float((d * V).sum() / max(V.sum(), 1e-12))
+    return NRSfMResult(S=S_cam, R=R, scale=np.ones(F), t=t, method=method, rank=rank,
+                       residual_px=resid, iterations=it, converged=conv,
+                       seconds=time.perf_counter() - t0)
+
+
+def noise_level(Wc: np.ndarray, rank: int = 12) -> float:
+    """Relative RMS of W outside its best rank-``rank`` approximation: the part no low-rank
+    motion explains (noise and model error), 0 on exact data."""
+    s = np.linalg.svd(Wc, compute_uv=False)
+    return float(np.sqrt((s[rank:] ** 2).sum() / max((s ** 2).sum(), 1e-300)))
+
+
+def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 4.0,
+        iterations: int = 100, trace_weight: float = 1e-3) -> NRSfMResult:
+    """Dai-Li-He prior-free NRSfM: trace-minimising metric projection for the cameras, then
+    nuclear-norm shapes (BMM) by ADMM.  ``rank`` is K of the motion factorisation (3K), 0 to
+    average the cameras over K = 2..6 (default); the shapes' rank follows from the nuclear
+    norm."""
+    t0 = time.perf_counter()
+    W, V = check_tracks(W, V)
+    if rank < 0:
+        raise ValueError(f'rank: expected >= 0 (0: automatic), got {rank}')
+    if lam < 0:
+        raise ValueError(f'lam: expected >= 0, got {lam}')
+    Wc, t = _centre(W, V)
+    R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
+        averaged_rotations(Wc, V, trace_weight=trace_weight)
+    X = impute_low_rank(Wc, V, 12) if (V < 0.5).any() else Wc
+    S, it, conv = bmm_shapes(Wc, V, R2, lam * max(noise_level(X), 1e-4), iterations)
+    r = exact_rank(X)
+    if r < min(X.shape[0], X.shape[1] - 1):   # noise-free low-rank data (centring costs one
+        # rank): remove the nuclear norm's shrinkage bias
+        S = depth_em(X, R2, S, max(1, -(-r // 3)))
+    return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0)
+
+
+def dct_smooth(Wc: np.ndarray, V: np.ndarray, d: int) -> np.ndarray:
+    """Project every point trajectory (rows of each coordinate over frames) onto the first
+    ``d`` DCT-II vectors; invisible entries are first filled by a rank-limited impute."""
+    F = V.shape[0]
+    X = Wc.reshape(F, 2, -1)
+    C = dct(X, norm='ortho', axis=0)
+    C[d:] = 0.0
+    return idct(C, norm='ortho', axis=0).reshape(2 * F, -1)
+
+
+def smsr(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 4.0,
+         dct_fraction: float = 0.3, iterations: int = 100, trace_weight: float = 1e-3
+         ) -> NRSfMResult:
+    """SMSR-style: DCT trajectory smoothing of W (first ``dct_fraction`` x F vectors), cameras
+    by the trace-prox metric projection, nuclear-norm ADMM shapes on the smoothed tracks."""
+    t0 = time.perf_counter()
+    W, V = check_tracks(W, V)
+    if rank < 0:
+        raise ValueError(f'rank: expected >= 0 (0: automatic), got {rank}')
+    if not 0 < dct_fraction <= 1:
+        raise ValueError(f'dct_fraction: expected (0, 1], got {dct_fraction}')
+    F = V.shape[0]
+    Wc, t = _centre(W, V)
+    X = impute_low_rank(Wc, V, 3 * (rank or 4)) if (V < 0.5).any() else Wc
+    d = max(2, int(round(dct_fraction * F)))
+    Ws = dct_smooth(X, V, d)
+    ones = np.ones_like(V)
+    R2 = dai_rotations(Ws, ones, rank, trace_weight) if rank else \
+        averaged_rotations(Ws, ones, trace_weight=trace_weight)
+    S, it, conv = bmm_shapes(Ws, ones, R2, lam * max(noise_level(X), 1e-4), iterations)
+    r = exact_rank(Ws)
+    if r < min(Ws.shape[0], Ws.shape[1] - 1):
+        S = depth_em(Ws, R2, S, max(1, -(-r // 3)))
+    return _finish(Wc, V, R2, S, t, 'smsr', rank, it, conv, t0)
