@@ -147,7 +147,7 @@ def averaged_rotations(Wc: np.ndarray, V: np.ndarray, ranks=AUTO_RANKS,
     sequence (measured on the mocap sets: up to 2x in e3D); the average is within reach of the
     best single K everywhere, so the default needs no per-dataset rank."""
     F, P = V.shape
-    r = exact_rank(impute_low_rank(Wc, V, 3 * max(ranks)) if (V < 0.5).any() else Wc)
+    r = exact_rank(Wc) if (V >= 0.5).all() else min(Wc.shape)
     ranks = [K for K in ranks if 9 * K <= 2 * F + 1 and 3 * K <= min(2 * F, P, r)] or \
         [max(1, min(r // 3, (2 * F + 1) // 9))]
     Rs = [dai_rotations(Wc, V, K, trace_weight) for K in ranks]
@@ -218,7 +218,7 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     return Z * unit, it, converged
 
 
-def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: int = 1000,
+def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: int = 500,
              tol: float = 1e-13) -> np.ndarray:
     """Rank-K shapes consistent with the cameras: S_f = R_f^T W_f + n_f d_f^T (n_f the viewing
     direction, d_f the unknown depths), alternating d_f from the rank-K projection of S# and
@@ -288,7 +288,7 @@ def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 
         averaged_rotations(Wc, V, trace_weight=trace_weight)
     X = impute_low_rank(Wc, V, 12) if (V < 0.5).any() else Wc
     S, it, conv = bmm_shapes(Wc, V, R2, lam * max(noise_level(X), 1e-4), iterations)
-    r = exact_rank(X)
+    r = exact_rank(X) if (V >= 0.5).all() else min(X.shape)   # (imputation lowers the rank)
     if r < min(X.shape[0], X.shape[1] - 1):   # noise-free low-rank data (centring costs one
         # rank): remove the nuclear norm's shrinkage bias
         S = depth_em(X, R2, S, max(1, -(-r // 3)))
@@ -325,7 +325,7 @@ def smsr(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float =
     R2 = dai_rotations(Ws, ones, rank, trace_weight) if rank else \
         averaged_rotations(Ws, ones, trace_weight=trace_weight)
     S, it, conv = bmm_shapes(Ws, ones, R2, lam * max(noise_level(X), 1e-4), iterations)
-    r = exact_rank(Ws)
+    r = exact_rank(Ws) if (V >= 0.5).all() else min(Ws.shape)
     if r < min(Ws.shape[0], Ws.shape[1] - 1):
         S = depth_em(Ws, R2, S, max(1, -(-r // 3)))
     return _finish(Wc, V, R2, S, t, 'smsr', rank, it, conv, t0)
