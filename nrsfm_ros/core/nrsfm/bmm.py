@@ -243,8 +243,9 @@ def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: 
     return A + n[:, :, None] * d[:, None, :]
 
 
-def exact_rank(Wc: np.ndarray, rel: float = 1e-8) -> int:
-    """Numerical rank of W (relative threshold): 3K on noise-free rank-K data."""
+def exact_rank(Wc: np.ndarray, rel: float = 1e-11) -> int:
+    """Numerical rank of W (relative threshold near float precision): 3K on noise-free
+    rank-K data, full on measured tracks."""
     s = np.linalg.svd(Wc, compute_uv=False)
     return int((s > rel * s[0]).sum())
 
@@ -287,10 +288,12 @@ def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 
     R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
         averaged_rotations(Wc, V, trace_weight=trace_weight)
     X = impute_low_rank(Wc, V, 12) if (V < 0.5).any() else Wc
-    S, it, conv = bmm_shapes(Wc, V, R2, lam * max(noise_level(X), 1e-4), iterations)
+    F, P = V.shape
+    init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, P)     # hidden tracks start imputed
+    S, it, conv = bmm_shapes(Wc, V, R2, lam * max(noise_level(X), 1e-4), iterations, init=init)
     r = exact_rank(X) if (V >= 0.5).all() else min(X.shape)   # (imputation lowers the rank)
-    if r < min(X.shape[0], X.shape[1] - 1):   # noise-free low-rank data (centring costs one
-        # rank): remove the nuclear norm's shrinkage bias
+    if r <= 3 * max(AUTO_RANKS) and r < min(X.shape[0], X.shape[1] - 1):
+        # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
         S = depth_em(X, R2, S, max(1, -(-r // 3)))
     return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0)
 
@@ -326,6 +329,6 @@ def smsr(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float =
         averaged_rotations(Ws, ones, trace_weight=trace_weight)
     S, it, conv = bmm_shapes(Ws, ones, R2, lam * max(noise_level(X), 1e-4), iterations)
     r = exact_rank(Ws) if (V >= 0.5).all() else min(Ws.shape)
-    if r < min(Ws.shape[0], Ws.shape[1] - 1):
+    if r <= 3 * max(AUTO_RANKS) and r < min(Ws.shape[0], Ws.shape[1] - 1):
         S = depth_em(Ws, R2, S, max(1, -(-r // 3)))
     return _finish(Wc, V, R2, S, t, 'smsr', rank, it, conv, t0)

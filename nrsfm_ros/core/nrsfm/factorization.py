@@ -24,8 +24,7 @@ def impute_low_rank(W: np.ndarray, V: np.ndarray, rank: int, iterations: int = 2
     X[~M] = np.broadcast_to(mean, X.shape)[~M]
     for _ in range(iterations):
         mu = X.mean(axis=1, keepdims=True)
-        U, s, Vt = np.linalg.svd(X - mu, full_matrices=False)
-        L = (U[:, :rank] * s[:rank]) @ Vt[:rank] + mu
+        L = _rank_project(X - mu, rank) + mu      # through the smaller Gram matrix
         X[~M] = L[~M]
     return X
 
