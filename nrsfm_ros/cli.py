@@ -22,7 +22,7 @@ EXAMPLES = {
     'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
     'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
     'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method bmm --out shapes.npz',
-    'register': 'nrsfm-ros register source.ply target.ply --method icp --out result.npz',
+    'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
 }
 
 
@@ -120,7 +120,14 @@ def _parser() -> argparse.ArgumentParser:
     rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
     rg.add_argument('source')
     rg.add_argument('target')
-    rg.add_argument('--method', default='icp')
+    rg.add_argument('--method', default='icp',
+                    help='icp, icp-point-to-point, icp-point-to-plane, cpd-rigid, cpd-affine, '
+                    'cpd-nonrigid (default icp)')
+    rg.add_argument('--w', type=float, default=None, help='cpd: outlier weight (default 0.1)')
+    rg.add_argument('--beta', type=float, default=None,
+                    help='cpd-nonrigid: kernel width in RMS radii (default 2.0)')
+    rg.add_argument('--lam', type=float, default=None,
+                    help='cpd-nonrigid: field smoothness (default 2.0)')
     rg.add_argument('--out', required=True)
     return p
 
@@ -455,8 +462,11 @@ def cmd_register(args: argparse.Namespace) -> int:
     from .core.registration import METHODS, register
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
+    kw = {k: v for k in ('w', 'beta', 'lam') if (v := getattr(args, k)) is not None}
+    if kw and not args.method.startswith('cpd'):
+        raise CliError(f'--{sorted(kw)[0]} applies to the cpd methods, not {args.method}')
     res = register(read_points_file(args.source), read_points_file(args.target),
-                   method=args.method)
+                   method=args.method, **kw)
     np.savez_compressed(args.out, T_target_source=res.T_target_source, aligned=res.aligned,
                         displacement=res.displacement, correspondences=res.correspondences)
     print(json.dumps({'method': res.method, 'iterations': res.iterations,

@@ -120,12 +120,17 @@ class ReconstructorParams(Params):
 
 @dataclass(frozen=True)
 class RegistrarParams(Params):
-    method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane'),
+    method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane',
+                                      'cpd-rigid', 'cpd-affine', 'cpd-nonrigid'),
                        'registration method')
     max_iterations: int = rule(30, _at_least(1), 'iteration cap')
     max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
     tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
+    w: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
+                    'cpd: weight of the uniform outlier component')
+    beta: float = rule(2.0, _positive, 'cpd-nonrigid: kernel width (units of the RMS radius)')
+    lam: float = rule(2.0, _positive, 'cpd-nonrigid: smoothness of the displacement field')
     try_reflection: bool = rule(True, None,
                                 'also try the depth-mirrored source (orthographic NRSfM has a '
                                 'depth reflection ambiguity) on the first cloud and every '

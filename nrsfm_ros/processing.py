@@ -291,8 +291,14 @@ class RegistrarProcessor(Processor):
             if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
         src, ids = src[ok], ids[ok]
         p = self.params
-        kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
-                  max_points=p.max_points, target_tree=self._tree)
+        if p.method.startswith('cpd'):
+            kw: dict[str, Any] = dict(max_iterations=p.max_iterations, tolerance=p.tolerance,
+                                      max_points=p.max_points or 10 ** 9, w=p.w)
+            if p.method == 'cpd-nonrigid':
+                kw.update(beta=p.beta, lam=p.lam)
+        else:
+            kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
+                      max_points=p.max_points, target_tree=self._tree)
         # The depth reflection of the reconstruction is consistent between windows, so both
         # hypotheses are tried only on the first cloud and every 10th after.
         c = src.mean(axis=0)
@@ -305,9 +311,12 @@ class RegistrarProcessor(Processor):
             res = alt if self.last_reflected else res
         else:
             # consecutive clouds move little: start from the previous frame's transform
-            init = 'centroid' if self._last_T is None else self._last_T
-            res = register(mirrored if self.last_reflected else src, self.reference,
-                           method=p.method, init=init, **kw)
+            moving = mirrored if self.last_reflected else src
+            if p.method.startswith('cpd'):
+                res = register(moving, self.reference, method=p.method, **kw)
+            else:
+                init = 'centroid' if self._last_T is None else self._last_T
+                res = register(moving, self.reference, method=p.method, init=init, **kw)
         self._checks += 1
         self._last_T = res.T_target_source
         stamp = stamp_ns(msg.header)

@@ -86,3 +86,26 @@ def test_track_rejects_bad_options(tmp_path, capsys):
     assert main(['track', str(tmp_path), '--rank', '-1', '--out', str(tmp_path / 't.npz')]) != 0
     err = capsys.readouterr().err
     assert 'rank=-1' in err and err.count('\n') == 1
+
+
+def test_reconstruct_default_bmm_and_register_cpd(tmp_path, capsys):
+    sys.path.insert(0, str(__import__('pathlib').Path(__file__).parent))
+    from tests_helpers import low_rank_sequence
+
+    from nrsfm_ros.core.metrics import e3d_frobenius
+    W, S, _ = low_rank_sequence(K=1, F=30, P=60)
+    np.savez(tmp_path / 'tracks.npz', W=W)
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--out',
+                 str(tmp_path / 's.npz')]) == 0
+    assert e3d_frobenius(np.load(tmp_path / 's.npz')['S'], S, 'global') < 1e-6
+    X = S[0]
+    write_ply(tmp_path / 'a.ply', X)
+    np.save(tmp_path / 'b.npy', X + [0.1, 0, 0])
+    assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--method',
+                 'cpd-rigid', '--w', '0.05', '--out', str(tmp_path / 'r.npz')]) == 0
+    T = np.load(tmp_path / 'r.npz')['T_target_source']
+    np.testing.assert_allclose(T[:3, 3], [0.1, 0, 0], atol=1e-3)
+    capsys.readouterr()
+    assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--w', '0.1',
+                 '--out', str(tmp_path / 'x.npz')]) != 0
+    assert 'applies to the cpd methods' in capsys.readouterr().err

@@ -54,3 +54,56 @@ def test_scene_flow_removes_rigid_motion():
     assert err < 0.3
     raw = scene_flow(X, ids, Y, ids, dt=0.5, frame='camera')
     np.testing.assert_allclose(raw.velocity, (Y - X) / 0.5)
+
+
+def _pose(deg: float):
+    R = Rotation.from_rotvec(np.radians(deg) * np.array([0.3, 1.0, 0.2]) /
+                             np.linalg.norm([0.3, 1.0, 0.2])).as_matrix()
+    return R, np.array([0.1, -0.2, 0.05])
+
+
+@pytest.mark.parametrize('method', ['cpd-rigid', 'cpd-affine'])
+def test_cpd_recovers_30_degrees(method):
+    X = surface(1500)
+    R, t = _pose(30)
+    src = (X - t) @ R
+    res = register(src, X, method=method, w=0.0)
+    A = res.T_target_source[:3, :3]
+    assert np.abs(A - R).max() < 0.01 and np.allclose(res.T_target_source[:3, 3], t, atol=0.01)
+    assert res.residual < 1e-2 and res.method == method
+
+
+def test_cpd_rigid_survives_large_rotation_and_outliers_where_icp_fails():
+    rng = np.random.default_rng(1)
+    X = surface(1500)
+    X[:, 2] += 0.6 * np.exp(-((X[:, 0] - 0.5) ** 2 + (X[:, 1] + 0.4) ** 2) / 0.05)  # no symmetry
+    R, t = _pose(60)
+    src = (X - t) @ R
+    noisy = np.vstack([X, rng.uniform(X.min(0), X.max(0), (500, 3))])   # 25% outliers
+    icp = register(src, noisy, method='icp', max_iterations=100)
+    cpd = register(src, noisy, method='cpd-rigid', w=0.3)
+    assert rotation_error_deg(cpd.T_target_source[:3, :3], R) < 1.0
+    assert rotation_error_deg(icp.T_target_source[:3, :3], R) > 10.0
+
+
+def test_cpd_nonrigid_undoes_a_smooth_warp():
+    rng = np.random.default_rng(2)
+    X = surface(1000)
+    C = X[rng.choice(1000, 6, replace=False)]
+    g = np.exp(-((X[:, None] - C[None]) ** 2).sum(-1) / (2 * 0.4 ** 2))
+    warped = X + 0.15 * g @ rng.normal(size=(6, 3))
+    start = np.sqrt(((warped - X) ** 2).sum(1).mean())
+    res = register(X, warped[rng.permutation(1000)], method='cpd-nonrigid', w=0.0)
+    end = np.sqrt(((res.aligned - warped) ** 2).sum(1).mean())
+    rigid = register(X, warped, method='cpd-rigid', w=0.0)
+    assert end < 0.2 * start and end < np.sqrt(((rigid.aligned - warped) ** 2).sum(1).mean())
+    assert np.allclose(res.displacement, res.aligned - X)
+
+
+def test_register_rejects_unknown_method_and_parameters():
+    with pytest.raises(ValueError, match="method='gravity'"):
+        register(surface(50), surface(50), method='gravity')
+    with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['trim'\]"):
+        register(surface(50), surface(50), method='cpd-rigid', trim=0.5)
+    with pytest.raises(ValueError, match='w=1.0'):
+        register(surface(50), surface(50), method='cpd-rigid', w=1.0)

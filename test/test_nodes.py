@@ -185,3 +185,32 @@ def test_config_yaml_matches_parameter_defaults():
     for name in NODE_PARAMS:
         text = (HERE.parent / 'config' / f'{name}.yaml').read_text()
         assert text == to_yaml(name), f'config/{name}.yaml is stale: regenerate with to_yaml'
+
+
+def test_registrar_processor_cpd_methods():
+    """The registrar's processing with CPD: transform and displacement per the method."""
+    from scipy.spatial.transform import Rotation
+
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import RegistrarParams
+    from nrsfm_ros.processing import RegistrarProcessor
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-1, 1, (2, 800))
+    X = np.stack([u, v, 0.4 * np.sin(2 * u) * np.cos(1.5 * v) + 0.2 * u * v], 1)
+    R = Rotation.from_rotvec([0.0, 0.5, 0.1]).as_matrix()
+    src = (X - [0.1, 0, 0]) @ R
+    fac = RosbagsFactory()
+
+    def cloud(P, stamp):
+        P = P.astype(np.float32)
+        return pc2.to_msg({'x': P[:, 0], 'y': P[:, 1], 'z': P[:, 2]}, fac, stamp, 'cam')
+    for method in ('cpd-rigid', 'cpd-nonrigid'):
+        proc = RegistrarProcessor(fac, RegistrarParams(method=method, try_reflection=False,
+                                                       w=0.0))
+        proc.handle('reference', cloud(X, 0))
+        out = dict((topic, msg) for topic, _, msg in proc.handle('points', cloud(src, 1)))
+        aligned = pc2.read_xyz(out['registration/aligned'])
+        assert np.sqrt(((aligned - X) ** 2).sum(1).mean()) < 0.02, method
+        disp = pc2.read_fields(out['registration/displacement'], ('dx', 'dy', 'dz'))
+        np.testing.assert_allclose(disp, aligned - src, atol=1e-4)

@@ -1,4 +1,38 @@
-"""Point set registration."""
-from .icp import METHODS, RegistrationResult, icp, register
+"""Point set registration by method name: ICP (point-to-point, point-to-plane) and Coherent
+Point Drift (rigid, affine, non-rigid).  One result type, ``RegistrationResult``."""
+from __future__ import annotations
 
-__all__ = ['METHODS', 'RegistrationResult', 'icp', 'register']
+from typing import Any
+
+import numpy as np
+
+from .cpd import cpd
+from .icp import ICP_METHODS, RegistrationResult, icp
+
+CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid'}
+METHODS = sorted([*ICP_METHODS, *CPD_METHODS])
+# the parameters each family understands (the registrar node passes its own set)
+ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
+              'max_points', 'target_tree'}
+CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
+              'max_points', 'seed', 'normalise'}
+
+
+def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: Any
+             ) -> RegistrationResult:
+    """Register ``source`` (N, 3) onto ``target`` (M, 3) by method name (see METHODS)."""
+    if method in ICP_METHODS:
+        unknown = set(params) - ICP_PARAMS
+        if unknown:
+            raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        return icp(source, target, method=ICP_METHODS[method], **params)
+    if method in CPD_METHODS:
+        unknown = set(params) - CPD_PARAMS
+        if unknown:
+            raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        return cpd(source, target, kind=CPD_METHODS[method], **params)
+    raise ValueError(f'method={method!r}: expected one of {METHODS}')
+
+
+__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'cpd', 'icp',
+           'register']

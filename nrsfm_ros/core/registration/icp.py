@@ -153,13 +153,5 @@ def _point_to_plane_step(A: np.ndarray, B: np.ndarray, n: np.ndarray) -> np.ndar
     return T
 
 
-METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
-           'icp-point-to-plane': 'point_to_plane'}
-
-
-def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: object
-             ) -> RegistrationResult:
-    """Register by method name (see METHODS)."""
-    if method not in METHODS:
-        raise ValueError(f'method={method!r}: expected one of {sorted(METHODS)}')
-    return icp(source, target, method=METHODS[method], **params)  # type: ignore[arg-type]
+ICP_METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
+               'icp-point-to-plane': 'point_to_plane'}

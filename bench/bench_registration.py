@@ -1,0 +1,120 @@
+"""Registration benchmark (issue 4): rotation error / RMSE and seconds per scenario and method.
+
+    .venv/bin/python bench/bench_registration.py [--json out.json]
+
+Data: ../shared/data/registration (Stanford bunny 34,834 points; CPD fish 2-D), scaled to
+bounding-box diagonal 1, Gaussian noise sigma = 0.005, target an independent permutation/subsample.
+Scenarios follow issue 4: rigid 30 and 90 degrees clean; 60 degrees with a 30% missing part and
+50% uniform outliers in the target; a smooth Gaussian-RBF warp (start RMSE 0.08) at 1k and 5k
+points (RMSE to the true warped positions); fish 2-D.  Peers (open3d, small_gicp, probreg, pycpd)
+are not installed in this environment yet, so they are not in the table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from nrsfm_ros.core.metrics import rotation_error_deg  # noqa: E402
+from nrsfm_ros.core.registration import register  # noqa: E402
+from nrsfm_ros.io.export import read_ply  # noqa: E402
+
+DATA = ROOT.parent / 'shared' / 'data' / 'registration'
+AXIS = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+
+
+def bunny() -> np.ndarray:
+    B = read_ply(DATA / 'stanford_bunny_34834.ply')
+    B = B - B.mean(0)
+    return B / np.linalg.norm(B.max(0) - B.min(0))
+
+
+def rigid_case(B, deg, rng, outliers=0.0, missing=0.0):
+    R = Rotation.from_rotvec(np.radians(deg) * AXIS).as_matrix()
+    src = B[rng.permutation(len(B))] + rng.normal(0, 0.005, B.shape)
+    tgt = B[rng.permutation(len(B))]
+    if missing:
+        tgt = tgt[tgt[:, 0] > np.quantile(tgt[:, 0], missing)]
+    tgt = tgt + rng.normal(0, 0.005, tgt.shape)
+    if outliers:
+        tgt = np.vstack([tgt, rng.uniform(tgt.min(0), tgt.max(0),
+                                          (int(outliers * len(tgt)), 3))])
+    return src, tgt @ R.T + [0.1, -0.05, 0.2], R
+
+
+def warp(X, rng, amp=0.08):
+    C = X[rng.choice(len(X), 8, replace=False)]
+    g = np.exp(-((X[:, None] - C[None]) ** 2).sum(-1) / (2 * 0.15 ** 2))
+    d = g @ rng.normal(size=(8, 3))
+    return X + d * amp / np.sqrt((d ** 2).sum(1).mean())
+
+
+def run() -> list[dict]:
+    rng = np.random.default_rng(0)
+    B = bunny()
+    rows = []
+    rigid = [('icp', {'max_iterations': 100}), ('icp-point-to-plane', {'max_iterations': 100}),
+             ('cpd-rigid', {'w': 0.1, 'max_points': 1500})]
+    for label, deg, kw in (('rigid 30 deg, clean, 35k', 30, {}),
+                           ('rigid 90 deg, clean, 35k', 90, {}),
+                           ('rigid 60 deg, 30% missing + 50% outliers, 35k', 60,
+                            {'outliers': 0.5, 'missing': 0.3})):
+        src, tgt, R = rigid_case(B, deg, rng, **kw)
+        for method, params in rigid:
+            if method == 'cpd-rigid' and kw:
+                params = {**params, 'w': 0.5}
+            t = time.perf_counter()
+            res = register(src, tgt, method=method, **params)
+            rows.append({'scenario': label, 'method': method,
+                         'error': rotation_error_deg(res.T_target_source[:3, :3], R),
+                         'unit': 'deg', 'seconds': time.perf_counter() - t})
+    for n in (1000, 5000):
+        src = B[rng.choice(len(B), n, replace=False)]
+        truth = warp(src, rng)
+        tgt = (truth + rng.normal(0, 0.005, truth.shape))[rng.permutation(n)]
+        for method, params in (('cpd-rigid', {'w': 0.0}),
+                               ('cpd-nonrigid', {'w': 0.0, 'max_points': 1500,
+                                                 'max_iterations': 150})):
+            t = time.perf_counter()
+            res = register(src, tgt, method=method, **params)
+            rows.append({'scenario': f'non-rigid RBF warp (start 0.080), {n // 1000}k',
+                         'method': method, 'unit': 'RMSE',
+                         'error': float(np.sqrt(((res.aligned - truth) ** 2).sum(1).mean())),
+                         'seconds': time.perf_counter() - t})
+    fs = np.loadtxt(DATA / 'pycpd_fish_source.txt')
+    ft = np.loadtxt(DATA / 'pycpd_fish_target.txt')
+    pad = lambda a: np.hstack([a, np.zeros((len(a), 1))])  # noqa: E731
+    t = time.perf_counter()
+    res = register(pad(ft), pad(fs), method='cpd-nonrigid', w=0.0)
+    rows.append({'scenario': 'fish 2-D (index-corresponding)', 'method': 'cpd-nonrigid',
+                 'unit': 'RMSE', 'seconds': time.perf_counter() - t,
+                 'error': float(np.sqrt(((res.aligned[:, :2] - fs) ** 2).sum(1).mean()))})
+    return rows
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--json', default=None)
+    args = p.parse_args()
+    rows = run()
+    print('| scenario | method | error | seconds |')
+    print('|---|---|---|---|')
+    for r in rows:
+        err = f"{r['error']:.2f} deg" if r['unit'] == 'deg' else f"{r['error']:.4f}"
+        print(f"| {r['scenario']} | {r['method']} | {err} | {r['seconds']:.2f} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
