@@ -6,8 +6,10 @@ Data: ../shared/data/registration (Stanford bunny 34,834 points; CPD fish 2-D), 
 bounding-box diagonal 1, Gaussian noise sigma = 0.005, target an independent permutation/subsample.
 Scenarios follow issue 4: rigid 30 and 90 degrees clean; 60 degrees with a 30% missing part and
 50% uniform outliers in the target; a smooth Gaussian-RBF warp (start RMSE 0.08) at 1k and 5k
-points (RMSE to the true warped positions); fish 2-D.  Peers (open3d, small_gicp, probreg, pycpd)
-are not installed in this environment yet, so they are not in the table.
+points (RMSE to the true warped positions); fish 2-D.  Peers run in the same process when
+installed (`.venv/bin/pip install -r bench/requirements-peers.txt`: pycpd, small_gicp; open3d and
+probreg are not installed here); each row shows error and time as ratios to our best method of
+the scenario.
 """
 from __future__ import annotations
 
@@ -57,6 +59,44 @@ def warp(X, rng, amp=0.08):
     return X + d * amp / np.sqrt((d ** 2).sum(1).mean())
 
 
+def peers_rigid(src, tgt):
+    """(name, callable returning T_target_source) for the installed rigid peers."""
+    out = []
+    try:
+        import small_gicp
+
+        def sg(kind):
+            def f():
+                T0 = np.eye(4)
+                T0[:3, 3] = tgt.mean(0) - src.mean(0)
+                r = small_gicp.align(tgt, src, T0, registration_type=kind,
+                                     downsampling_resolution=0.01,
+                                     max_correspondence_distance=0.1, num_threads=2,
+                                     max_iterations=100)
+                return r.T_target_source
+            return f
+        out += [('small_gicp GICP', sg('GICP')), ('small_gicp ICP', sg('ICP'))]
+    except ImportError:
+        pass
+    try:
+        from pycpd import RigidRegistration
+        rng = np.random.default_rng(1)
+
+        def pc():
+            X = tgt[rng.choice(len(tgt), min(1500, len(tgt)), replace=False)]
+            Y = src[rng.choice(len(src), min(1500, len(src)), replace=False)]
+            reg = RigidRegistration(X=X, Y=Y, w=0.1, max_iterations=100)
+            _, (sc, R, t) = reg.register()
+            T = np.eye(4)
+            T[:3, :3] = sc * R.T
+            T[:3, 3] = t
+            return T
+        out.append(('pycpd rigid (1.5k)', pc))
+    except ImportError:
+        pass
+    return out
+
+
 def run() -> list[dict]:
     rng = np.random.default_rng(0)
     B = bunny()
@@ -73,9 +113,15 @@ def run() -> list[dict]:
                 params = {**params, 'w': 0.5}
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
-            rows.append({'scenario': label, 'method': method,
+            rows.append({'scenario': label, 'method': method, 'ours': True,
                          'error': rotation_error_deg(res.T_target_source[:3, :3], R),
                          'unit': 'deg', 'seconds': time.perf_counter() - t})
+        for name, fn in peers_rigid(src, tgt):
+            t = time.perf_counter()
+            T = fn()
+            rows.append({'scenario': label, 'method': name, 'ours': False,
+                         'error': rotation_error_deg(T[:3, :3], R), 'unit': 'deg',
+                         'seconds': time.perf_counter() - t})
     for n in (1000, 5000):
         src = B[rng.choice(len(B), n, replace=False)]
         truth = warp(src, rng)
@@ -86,17 +132,38 @@ def run() -> list[dict]:
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
             rows.append({'scenario': f'non-rigid RBF warp (start 0.080), {n // 1000}k',
-                         'method': method, 'unit': 'RMSE',
+                         'method': method, 'unit': 'RMSE', 'ours': True,
                          'error': float(np.sqrt(((res.aligned - truth) ** 2).sum(1).mean())),
                          'seconds': time.perf_counter() - t})
+        if n <= 1000:
+            try:
+                from pycpd import DeformableRegistration
+                t = time.perf_counter()
+                TY, _ = DeformableRegistration(X=tgt, Y=src, alpha=2.0, beta=2.0,
+                                               max_iterations=150).register()
+                rows.append({'scenario': f'non-rigid RBF warp (start 0.080), {n // 1000}k',
+                             'method': 'pycpd deformable', 'unit': 'RMSE', 'ours': False,
+                             'error': float(np.sqrt(((TY - truth) ** 2).sum(1).mean())),
+                             'seconds': time.perf_counter() - t})
+            except ImportError:
+                pass
     fs = np.loadtxt(DATA / 'pycpd_fish_source.txt')
     ft = np.loadtxt(DATA / 'pycpd_fish_target.txt')
     pad = lambda a: np.hstack([a, np.zeros((len(a), 1))])  # noqa: E731
     t = time.perf_counter()
     res = register(pad(ft), pad(fs), method='cpd-nonrigid', w=0.0)
     rows.append({'scenario': 'fish 2-D (index-corresponding)', 'method': 'cpd-nonrigid',
-                 'unit': 'RMSE', 'seconds': time.perf_counter() - t,
+                 'unit': 'RMSE', 'seconds': time.perf_counter() - t, 'ours': True,
                  'error': float(np.sqrt(((res.aligned[:, :2] - fs) ** 2).sum(1).mean()))})
+    try:
+        from pycpd import DeformableRegistration
+        t = time.perf_counter()
+        TY, _ = DeformableRegistration(X=fs, Y=ft).register()
+        rows.append({'scenario': 'fish 2-D (index-corresponding)', 'method': 'pycpd deformable',
+                     'unit': 'RMSE', 'seconds': time.perf_counter() - t, 'ours': False,
+                     'error': float(np.sqrt(((TY - fs) ** 2).sum(1).mean()))})
+    except ImportError:
+        pass
     return rows
 
 
@@ -106,11 +173,15 @@ def main() -> int:
     p.add_argument('--json', default=None)
     args = p.parse_args()
     rows = run()
-    print('| scenario | method | error | seconds |')
-    print('|---|---|---|---|')
+    print('| scenario | method | error | seconds | error / our best | time / our best |')
+    print('|---|---|---|---|---|---|')
     for r in rows:
+        best = min((q for q in rows if q['scenario'] == r['scenario'] and q['ours']),
+                   key=lambda q: q['error'])
         err = f"{r['error']:.2f} deg" if r['unit'] == 'deg' else f"{r['error']:.4f}"
-        print(f"| {r['scenario']} | {r['method']} | {err} | {r['seconds']:.2f} |")
+        print(f"| {r['scenario']} | {r['method']} | {err} | {r['seconds']:.2f} | "
+              f"{r['error'] / max(best['error'], 1e-12):.2f} | "
+              f"{r['seconds'] / max(best['seconds'], 1e-12):.2f} |")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
