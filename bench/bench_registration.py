@@ -40,16 +40,20 @@ def bunny() -> np.ndarray:
 
 
 def rigid_case(B, deg, rng, outliers=0.0, missing=0.0):
+    """source, target, R, and 1% true prior pairs (source index, target index)."""
     R = Rotation.from_rotvec(np.radians(deg) * AXIS).as_matrix()
-    src = B[rng.permutation(len(B))] + rng.normal(0, 0.005, B.shape)
-    tgt = B[rng.permutation(len(B))]
+    ps = rng.permutation(len(B))
+    src = B[ps] + rng.normal(0, 0.005, B.shape)
+    pt = rng.permutation(len(B))
     if missing:
-        tgt = tgt[tgt[:, 0] > np.quantile(tgt[:, 0], missing)]
-    tgt = tgt + rng.normal(0, 0.005, tgt.shape)
+        pt = pt[B[pt, 0] > np.quantile(B[:, 0], missing)]
+    tgt = B[pt] + rng.normal(0, 0.005, (len(pt), 3))
+    chosen = rng.choice(len(pt), max(1, len(pt) // 100), replace=False)
+    priors = np.stack([np.argsort(ps)[pt[chosen]], chosen], axis=1)
     if outliers:
         tgt = np.vstack([tgt, rng.uniform(tgt.min(0), tgt.max(0),
                                           (int(outliers * len(tgt)), 3))])
-    return src, tgt @ R.T + [0.1, -0.05, 0.2], R
+    return src, tgt @ R.T + [0.1, -0.05, 0.2], R, priors
 
 
 def warp(X, rng, amp=0.08):
@@ -107,13 +111,16 @@ def run() -> list[dict]:
                            ('rigid 90 deg, clean, 35k', 90, {}),
                            ('rigid 60 deg, 30% missing + 50% outliers, 35k', 60,
                             {'outliers': 0.5, 'missing': 0.3})):
-        src, tgt, R = rigid_case(B, deg, rng, **kw)
-        for method, params in rigid:
+        src, tgt, R, priors = rigid_case(B, deg, rng, **kw)
+        cases = rigid + ([('ecpd-rigid', {'w': 0.5, 'max_points': 1500, 'priors': priors})]
+                         if kw else [])
+        for method, params in cases:
             if method == 'cpd-rigid' and kw:
                 params = {**params, 'w': 0.5}
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
-            rows.append({'scenario': label, 'method': method, 'ours': True,
+            name = f'{method} (1% priors)' if method.startswith('ecpd') else method
+            rows.append({'scenario': label, 'method': name, 'ours': True,
                          'error': rotation_error_deg(res.T_target_source[:3, :3], R),
                          'unit': 'deg', 'seconds': time.perf_counter() - t})
         for name, fn in peers_rigid(src, tgt):

@@ -107,3 +107,25 @@ def test_register_rejects_unknown_method_and_parameters():
         register(surface(50), surface(50), method='cpd-rigid', trim=0.5)
     with pytest.raises(ValueError, match='w=1.0'):
         register(surface(50), surface(50), method='cpd-rigid', w=1.0)
+
+
+def test_ecpd_priors_pull_a_wrong_minimum_right():
+    rng = np.random.default_rng(4)
+    X = surface(1500)
+    X[:, 2] += 0.6 * np.exp(-((X[:, 0] - 0.5) ** 2 + (X[:, 1] + 0.4) ** 2) / 0.05)
+    R = Rotation.from_rotvec(np.radians(150) * np.array([0.3, 1.0, 0.2]) /
+                             np.linalg.norm([0.3, 1.0, 0.2])).as_matrix()
+    perm = rng.permutation(1500)
+    src = ((X - [0.1, -0.2, 0.05]) @ R)[perm]          # target = R src + t, shuffled
+    noisy = np.vstack([X, rng.uniform(X.min(0), X.max(0), (500, 3))])
+    plain = register(src, noisy, method='cpd-rigid', w=0.3)
+    k = rng.choice(1500, 15, replace=False)              # 1% correct prior matches
+    priors = np.stack([k, perm[k]], axis=1)
+    ecpd = register(src, noisy, method='ecpd-rigid', w=0.3, priors=priors)
+    assert rotation_error_deg(plain.T_target_source[:3, :3], R) > 10.0
+    assert rotation_error_deg(ecpd.T_target_source[:3, :3], R) < 1.0
+    assert ecpd.method == 'ecpd-rigid'
+    with pytest.raises(ValueError, match='needs priors'):
+        register(src, noisy, method='ecpd-rigid')
+    with pytest.raises(ValueError, match='out of range'):
+        register(src, noisy, method='ecpd-rigid', priors=np.array([[0, 99999]]))

@@ -1,5 +1,6 @@
-"""Point set registration by method name: ICP (point-to-point, point-to-plane) and Coherent
-Point Drift (rigid, affine, non-rigid).  One result type, ``RegistrationResult``."""
+"""Point set registration by method name: ICP (point-to-point, point-to-plane), Coherent Point
+Drift (rigid, affine, non-rigid) and ECPD (CPD with prior correspondences).  One result type,
+``RegistrationResult``."""
 from __future__ import annotations
 
 from typing import Any
@@ -9,13 +10,14 @@ import numpy as np
 from .cpd import cpd
 from .icp import ICP_METHODS, RegistrationResult, icp
 
-CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid'}
+CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid',
+               'ecpd-rigid': 'rigid', 'ecpd-nonrigid': 'nonrigid'}
 METHODS = sorted([*ICP_METHODS, *CPD_METHODS])
 # the parameters each family understands (the registrar node passes its own set)
 ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
               'max_points', 'target_tree'}
 CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
-              'max_points', 'seed', 'normalise'}
+              'max_points', 'seed', 'normalise', 'priors', 'alpha'}
 
 
 def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: Any
@@ -30,6 +32,9 @@ def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **para
         unknown = set(params) - CPD_PARAMS
         if unknown:
             raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        if method.startswith('ecpd') and params.get('priors') is None:
+            raise ValueError(f'{method}: needs priors, (K, 2) pairs (source index, target '
+                             'index) of known correspondences')
         return cpd(source, target, kind=CPD_METHODS[method], **params)
     raise ValueError(f'method={method!r}: expected one of {METHODS}')
 

@@ -116,12 +116,17 @@ def _kernel(A: np.ndarray, B: np.ndarray, beta: float, chunk: int = 4096) -> np.
 def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 0.1,
         max_iterations: int = 100, tolerance: float = 1e-6, scale: bool = False,
         beta: float = 2.0, lam: float = 2.0, landmarks: int = 300, max_points: int = 3000,
-        seed: int = 0, normalise: bool = True) -> RegistrationResult:
+        seed: int = 0, normalise: bool = True, priors: np.ndarray | None = None,
+        alpha: float = 1e-3) -> RegistrationResult:
     """CPD of ``source`` onto ``target`` (kind rigid | affine | nonrigid).
 
     ``w`` outlier weight in [0, 1); ``beta``, ``lam`` kernel width and smoothness of the
     non-rigid field (in units of the normalised data: both sets are centred and scaled to unit
-    RMS radius when ``normalise``); ``max_points`` subsample size for large inputs."""
+    RMS radius when ``normalise``); ``max_points`` subsample size for large inputs.
+
+    ECPD: ``priors`` (K, 2) integer pairs (source index, target index) of known
+    correspondences add a fixed-assignment term weighted by sigma^2 / ``alpha`` to the M-step
+    (small ``alpha``: nearly hard constraints); the subsamples always keep the prior points."""
     t0 = time.perf_counter()
     if kind not in ('rigid', 'affine', 'nonrigid'):
         raise ValueError(f"kind={kind!r}: expected 'rigid', 'affine' or 'nonrigid'")
@@ -134,6 +139,17 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
     if max_points < 10:
         raise ValueError(f'max_points={max_points}: expected >= 10')
     rng = np.random.default_rng(seed)
+    if priors is not None:
+        priors = np.asarray(priors)
+        if priors.ndim != 2 or priors.shape[1] != 2 or not np.issubdtype(priors.dtype,
+                                                                          np.integer):
+            raise ValueError(f'priors: expected (K, 2) integer pairs, got {priors.dtype} '
+                             f'{priors.shape}')
+        if priors.size and (priors.min() < 0 or priors[:, 0].max() >= len(Y0)
+                            or priors[:, 1].max() >= len(X0)):
+            raise ValueError('priors: an index is out of range of source/target')
+        if alpha <= 0:
+            raise ValueError(f'alpha={alpha}: expected > 0')
     # normalisation (undone at the end)
     cx, cy = X0.mean(0), Y0.mean(0)
     sc = float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())) if normalise else 1.0
@@ -142,11 +158,19 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
         cx = cy = np.zeros(3)
     sc = sy = max(sc, sy, 1e-12) if normalise else 1.0
     Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sy
-    xi = rng.choice(len(Xn), max_points, replace=False) if len(Xn) > max_points else \
-        np.arange(len(Xn))
-    yi = rng.choice(len(Yn), max_points, replace=False) if len(Yn) > max_points else \
-        np.arange(len(Yn))
+    def subsample(n: int, keep: np.ndarray) -> np.ndarray:
+        if n <= max_points:
+            return np.arange(n)
+        rest = np.setdiff1d(np.arange(n), keep)
+        extra = rng.choice(rest, max(max_points - keep.size, 0), replace=False)
+        return np.sort(np.concatenate([keep, extra]))
+    has_priors = priors is not None and len(priors) > 0
+    xi = subsample(len(Xn), np.unique(priors[:, 1]) if has_priors else np.zeros(0, int))
+    yi = subsample(len(Yn), np.unique(priors[:, 0]) if has_priors else np.zeros(0, int))
     X, Y = Xn[xi], Yn[yi]
+    if has_priors:     # prior pairs in subsample indices
+        pm = np.searchsorted(yi, priors[:, 0])
+        pn = np.searchsorted(xi, priors[:, 1])
     sigma2 = _sigma2(X, Y)
     R, s, t, Bm = np.eye(3), 1.0, np.zeros(3), np.eye(3)
     Wn = np.zeros_like(Y)
@@ -156,6 +180,13 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
     it, converged, prev = 0, False, np.inf
     for it in range(1, max_iterations + 1):
         P1, Pt1, PX = estep(X, TY, sigma2, w)
+        gP1, gPt1, gPX = P1, Pt1, PX               # the mixture part, for sigma^2
+        if has_priors:
+            k = sigma2 / alpha
+            P1 = P1 + k * np.bincount(pm, minlength=len(Y))
+            Pt1 = Pt1 + k * np.bincount(pn, minlength=len(X))
+            PX = PX.copy()
+            np.add.at(PX, pm, k * X[pn])
         if kind == 'rigid':
             R, s, t, sigma2 = _rigid_mstep(X, Y, P1, Pt1, PX, scale)
             TY = s * Y @ R.T + t
@@ -170,9 +201,10 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
             inner = ls2 * np.eye(Bf.shape[1]) + Bf.T @ (d[:, None] * Bf)
             Wn = (rhs - d[:, None] * (Bf @ np.linalg.solve(inner, Bf.T @ rhs))) / ls2
             TY = Y + Bf @ (Bf.T @ Wn)
-            Np = max(P1.sum(), 1e-12)
-            sigma2 = max(float(((Pt1 * (X ** 2).sum(1)).sum() - 2 * (PX * TY).sum()
-                                + (P1 * (TY ** 2).sum(1)).sum()) / (Np * 3)), 1e-10)
+        if kind == 'nonrigid' or has_priors:    # sigma^2 of the mixture, any transform
+            Np = max(gP1.sum(), 1e-12)
+            sigma2 = max(float(((gPt1 * (X ** 2).sum(1)).sum() - 2 * (gPX * TY).sum()
+                                + (gP1 * (TY ** 2).sum(1)).sum()) / (Np * 3)), 1e-10)
         change = abs(prev - sigma2) / max(prev, 1e-300) if np.isfinite(prev) else np.inf
         prev = sigma2
         if change < tolerance or sigma2 < 1e-9:
@@ -202,7 +234,7 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
     dist, corr = cKDTree(X0).query(aligned, k=1, workers=-1)
     thr = 3 * np.sqrt(sigma2) * sc
     ok = dist <= max(thr, 1e-12)
-    method = f'cpd-{kind}'
+    method = f'ecpd-{kind}' if has_priors else f'cpd-{kind}'
     return RegistrationResult(T_target_source=T, aligned=aligned, displacement=aligned - Y0,
                               correspondences=np.where(ok, corr, -1), iterations=it,
                               converged=converged,
