@@ -27,7 +27,7 @@ from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data' / 'nrsfm'
 DATASETS = ('drink', 'pickup', 'stretch', 'face', 'walking')
-METHODS = {'rigid': {}, 'lowrank': {'rank': 3}, 'bmm': {}, 'smsr': {}}
+METHODS = {'rigid': {}, 'lowrank': {'rank': 3}, 'bmm': {}, 'smsr': {}, 'amp': {'rank': 5}}
 ANCHORS = {'drink': (0.0266, 0.0250), 'pickup': (0.1731, 0.2369), 'stretch': (0.1034, 0.1088)}
 
 

@@ -111,7 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument('tracks')
     rc.add_argument('--method', default='bmm',
                     help='rigid, lowrank, bmm (default: Dai-Li-He cameras + nuclear-norm '
-                    'shapes) or smsr (DCT-smoothed tracks)')
+                    'shapes), smsr (DCT-smoothed tracks) or amp (metric projections)')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6)')
@@ -424,7 +424,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
     kw = {} if args.method == 'rigid' else \
-        {'rank': args.rank if args.rank is not None else (3 if args.method == 'lowrank' else 0)}
+        {'rank': args.rank if args.rank is not None else
+         (3 if args.method in ('lowrank', 'amp') else 0)}
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '

@@ -105,7 +105,7 @@ class TrackerParams(Params):
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
     mode: str = rule('window', _one_of('window', 'batch'), 'sliding window or whole batches')
-    method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr'),
+    method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp'),
                        'NRSfM method (batch mode; bmm/smsr choose their motion rank)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')

@@ -239,7 +239,7 @@ class ReconstructorProcessor(Processor):
             return []
         W = np.concatenate([p[2].T for p in self._pending], axis=0)
         V = np.maximum(np.stack([p[3] for p in self._pending]), 1e-3)
-        kw = {'rank': self.params.rank} if self.params.method == 'lowrank' else {}
+        kw = {'rank': self.params.rank} if self.params.method in ('lowrank', 'amp') else {}
         res = reconstruct(W, V, method=self.params.method, **kw)
         return [(res.S[f], float(res.scale[f]), res.t[f]) for f in range(res.S.shape[0])]
 

@@ -134,3 +134,17 @@ def test_bmm_accuracy_on_mocap(name):
     err = metric_a(reconstruct(d['W'], method='bmm'))
     assert err <= MOCAP_A[name] * 1.05 + 1e-3
     assert err < metric_a(reconstruct(d['W'], method='rigid'))
+
+
+def test_amp_exact_on_rigid_data_and_invariant_to_frame_order():
+    W, S, _ = low_rank_sequence(K=1)
+    assert e3d_frobenius(reconstruct(W, method='amp', rank=1).S, S, 'global') < 1e-6
+    W2, S2, _ = low_rank_sequence(K=2)
+    res = reconstruct(W2, method='amp', rank=2, iterations=200)
+    perm = np.random.default_rng(0).permutation(60)
+    Wp = W2.reshape(60, 2, -1)[perm].reshape(120, -1)
+    resp = reconstruct(Wp, method='amp', rank=2, iterations=200)
+    a = e3d_frobenius(res.S, S2, 'frame')
+    assert a < 0.01 and abs(e3d_frobenius(resp.S, S2[perm], 'frame') - a) < 1e-6
+    with pytest.raises(ValueError, match='rank=0'):
+        reconstruct(W2, method='amp', rank=0)

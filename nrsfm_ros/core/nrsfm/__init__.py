@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from .amp import amp
 from .bmm import bmm, smsr
 from .factorization import low_rank, rigid
 from .result import NRSfMResult, check_tracks
@@ -16,6 +17,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'lowrank': low_rank,
     'bmm': bmm,
     'smsr': smsr,
+    'amp': amp,
 }
 
 
