@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .reference_flow import PRESETS, texture_mask
+from .reference_flow import PRESETS, check_grey, texture_mask
 from .subspace import GridSampler, fit_basis, fit_coefficients
 
 
@@ -226,13 +226,7 @@ class MFOFTracker:
 
     def step(self, grey: np.ndarray) -> MFOFFrame:
         """Track one grey uint8 frame (H, W)."""
-        grey = np.asarray(grey)
-        if grey.ndim != 2 or grey.dtype != np.uint8:
-            raise ValueError(f'grey: expected an (H, W) uint8 image, got {grey.dtype} '
-                             f'{grey.shape}')
-        if self._ref is not None and grey.shape != self._ref.shape:
-            raise ValueError(f'grey: size {grey.shape} differs from the reference '
-                             f'{self._ref.shape}')
+        grey = check_grey(grey, self._ref)
         self._index += 1
         if self._ref is None:
             return self._new_reference(grey)

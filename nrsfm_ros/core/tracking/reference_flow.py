@@ -34,6 +34,18 @@ def texture_mask(grey: np.ndarray, block: int = 7, min_std: float = 4.0) -> np.n
     return mask.astype(bool)
 
 
+def check_grey(grey: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+    """An (H, W) uint8 frame of the reference's size, or a ValueError naming what is wrong."""
+    grey = np.asarray(grey)
+    if grey.ndim != 2 or grey.dtype != np.uint8:
+        raise ValueError(f'grey: expected an (H, W) uint8 image, got {grey.dtype} '
+                         f'{grey.shape}')
+    if reference is not None and grey.shape != reference.shape:
+        raise ValueError(f'grey: size {grey.shape} differs from the reference '
+                         f'{reference.shape}')
+    return grey
+
+
 @dataclass(frozen=True)
 class TrackFrame:
     """Tracks of one frame: uv (P, 2) pixel positions, visibility (P,) in [0, 1],
@@ -95,13 +107,7 @@ class ReferenceFlowTracker:
 
     def step(self, grey: np.ndarray) -> TrackFrame:
         """Track one grey uint8 frame (H, W); the first frame becomes the reference."""
-        grey = np.asarray(grey)
-        if grey.ndim != 2 or grey.dtype != np.uint8:
-            raise ValueError(f'grey: expected an (H, W) uint8 image, got {grey.dtype} '
-                             f'{grey.shape}')
-        if self._ref is not None and grey.shape != self._ref.shape:
-            raise ValueError(f'grey: size {grey.shape} differs from the reference '
-                             f'{self._ref.shape}')
+        grey = check_grey(grey, self._ref)
         self._index += 1
         if self._ref is None:
             self._set_reference(grey)
