@@ -106,20 +106,20 @@ def run() -> list[dict]:
     B = bunny()
     rows = []
     rigid = [('icp', {'max_iterations': 100}), ('icp-point-to-plane', {'max_iterations': 100}),
-             ('cpd-rigid', {'w': 0.1, 'max_points': 1500})]
+             ('cpd-rigid', {'w': 0.1, 'max_points': 1500}), ('ga', {})]
     for label, deg, kw in (('rigid 30 deg, clean, 35k', 30, {}),
                            ('rigid 90 deg, clean, 35k', 90, {}),
                            ('rigid 60 deg, 30% missing + 50% outliers, 35k', 60,
                             {'outliers': 0.5, 'missing': 0.3})):
         src, tgt, R, priors = rigid_case(B, deg, rng, **kw)
-        cases = rigid + ([('ecpd-rigid', {'w': 0.5, 'max_points': 1500, 'priors': priors})]
-                         if kw else [])
+        cases = rigid + ([('ecpd-rigid', {'w': 0.5, 'max_points': 1500, 'priors': priors}),
+                          ('ga', {'priors': priors})] if kw else [])
         for method, params in cases:
             if method == 'cpd-rigid' and kw:
                 params = {**params, 'w': 0.5}
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
-            name = f'{method} (1% priors)' if method.startswith('ecpd') else method
+            name = f'{method} (1% priors)' if 'priors' in params else method
             rows.append({'scenario': label, 'method': name, 'ours': True,
                          'error': rotation_error_deg(res.T_target_source[:3, :3], R),
                          'unit': 'deg', 'seconds': time.perf_counter() - t})

@@ -122,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument('target')
     rg.add_argument('--method', default='icp',
                     help='icp, icp-point-to-point, icp-point-to-plane, cpd-rigid, cpd-affine, '
-                    'cpd-nonrigid (default icp)')
+                    'cpd-nonrigid, ga (default icp)')
     rg.add_argument('--w', type=float, default=None, help='cpd: outlier weight (default 0.1)')
     rg.add_argument('--beta', type=float, default=None,
                     help='cpd-nonrigid: kernel width in RMS radii (default 2.0)')

@@ -121,9 +121,10 @@ class ReconstructorParams(Params):
 @dataclass(frozen=True)
 class RegistrarParams(Params):
     method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane',
-                                      'cpd-rigid', 'cpd-affine', 'cpd-nonrigid'),
+                                      'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ga'),
                        'registration method')
-    max_iterations: int = rule(30, _at_least(1), 'iteration cap')
+    max_iterations: int = rule(30, _at_least(1), 'iteration cap (ICP and CPD iterations; '
+                               'GA dynamics steps, which needs ~300)')
     max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
     tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')

@@ -296,6 +296,8 @@ class RegistrarProcessor(Processor):
                                       max_points=p.max_points or 10 ** 9, w=p.w)
             if p.method == 'cpd-nonrigid':
                 kw.update(beta=p.beta, lam=p.lam)
+        elif p.method == 'ga':
+            kw = dict(max_iterations=p.max_iterations, max_points=p.max_points or 10 ** 9)
         else:
             kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
                       max_points=p.max_points, target_tree=self._tree)
@@ -312,7 +314,7 @@ class RegistrarProcessor(Processor):
         else:
             # consecutive clouds move little: start from the previous frame's transform
             moving = mirrored if self.last_reflected else src
-            if p.method.startswith('cpd'):
+            if p.method.startswith('cpd') or p.method == 'ga':
                 res = register(moving, self.reference, method=p.method, **kw)
             else:
                 init = 'centroid' if self._last_T is None else self._last_T

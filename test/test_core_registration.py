@@ -129,3 +129,20 @@ def test_ecpd_priors_pull_a_wrong_minimum_right():
         register(src, noisy, method='ecpd-rigid')
     with pytest.raises(ValueError, match='out of range'):
         register(src, noisy, method='ecpd-rigid', priors=np.array([[0, 99999]]))
+
+
+def test_ga_recovers_a_large_rotation_and_uses_prior_masses():
+    rng = np.random.default_rng(5)
+    X = surface(1200)
+    X[:, 2] += 0.6 * np.exp(-((X[:, 0] - 0.5) ** 2 + (X[:, 1] + 0.4) ** 2) / 0.05)
+    R, t = _pose(60)
+    perm = rng.permutation(1200)
+    src = ((X - t) @ R)[perm]
+    res = register(src, X, method='ga')
+    assert rotation_error_deg(res.T_target_source[:3, :3], R) < 2.0 and res.method == 'ga'
+    k = rng.choice(1200, 12, replace=False)
+    pri = register(src, X, method='ga', priors=np.stack([k, perm[k]], 1))
+    assert rotation_error_deg(pri.T_target_source[:3, :3], R) < 1.0
+    assert pri.iterations < res.iterations          # the cues speed convergence up
+    with pytest.raises(ValueError, match='damping=1.5'):
+        register(src, X, method='ga', damping=1.5)

@@ -1,6 +1,6 @@
 """Point set registration by method name: ICP (point-to-point, point-to-plane), Coherent Point
-Drift (rigid, affine, non-rigid) and ECPD (CPD with prior correspondences).  One result type,
-``RegistrationResult``."""
+Drift (rigid, affine, non-rigid), ECPD (CPD with prior correspondences) and the rigid
+gravitational approach (GA).  One result type, ``RegistrationResult``."""
 from __future__ import annotations
 
 from typing import Any
@@ -8,16 +8,19 @@ from typing import Any
 import numpy as np
 
 from .cpd import cpd
+from .gravitational import ga
 from .icp import ICP_METHODS, RegistrationResult, icp
 
 CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid',
                'ecpd-rigid': 'rigid', 'ecpd-nonrigid': 'nonrigid'}
-METHODS = sorted([*ICP_METHODS, *CPD_METHODS])
+METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga'])
 # the parameters each family understands (the registrar node passes its own set)
 ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
               'max_points', 'target_tree'}
 CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
               'max_points', 'seed', 'normalise', 'priors', 'alpha'}
+GA_PARAMS = {'max_iterations', 'tolerance', 'eps', 'dt', 'damping', 'max_points', 'priors',
+             'prior_mass', 'seed', 'polish_trim'}
 
 
 def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: Any
@@ -36,8 +39,13 @@ def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **para
             raise ValueError(f'{method}: needs priors, (K, 2) pairs (source index, target '
                              'index) of known correspondences')
         return cpd(source, target, kind=CPD_METHODS[method], **params)
+    if method == 'ga':
+        unknown = set(params) - GA_PARAMS
+        if unknown:
+            raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        return ga(source, target, **params)
     raise ValueError(f'method={method!r}: expected one of {METHODS}')
 
 
-__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'cpd', 'icp',
+__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'cpd', 'ga', 'icp',
            'register']
