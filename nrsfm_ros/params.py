@@ -104,7 +104,9 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('window', _one_of('window', 'batch'), 'sliding window or whole batches')
+    mode: str = rule('window', _one_of('window', 'batch', 'online'),
+                     'window: sliding window re-solved per frame; online: the first window, '
+                     'then each frame fitted alone to its shape basis; batch: whole batches')
     method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp'),
                        'NRSfM method (batch mode; bmm/smsr choose their motion rank)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .core.nrsfm import WindowNRSfM, reconstruct
+from .core.nrsfm import OnlineNRSfM, WindowNRSfM, reconstruct
 from .core.registration import register
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
@@ -179,7 +179,10 @@ class ReconstructorProcessor(Processor):
 
     def _reset(self) -> None:
         p = self.params
-        self.window = WindowNRSfM(window=p.window, rank=p.rank, iterations=p.iterations)
+        self.window: WindowNRSfM | OnlineNRSfM = \
+            OnlineNRSfM(window=p.window, rank=p.rank, iterations=p.iterations) \
+            if p.mode == 'online' else \
+            WindowNRSfM(window=p.window, rank=p.rank, iterations=p.iterations)
         self._pending: deque[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._ids: np.ndarray | None = None
 
@@ -215,7 +218,7 @@ class ReconstructorProcessor(Processor):
         vis = np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0)
         uv = np.nan_to_num(cols[:, :2])
         self._pending.append((stamp_ns(msg.header), str(msg.header.frame_id), uv, vis, rgb))
-        if self.params.mode == 'window':
+        if self.params.mode in ('window', 'online'):
             shapes = [(fs.S, fs.scale, fs.t) for fs in self.window.push(uv, vis)]
         else:
             shapes = self._batch()

@@ -148,3 +148,26 @@ def test_amp_exact_on_rigid_data_and_invariant_to_frame_order():
     assert a < 0.01 and abs(e3d_frobenius(resp.S, S2[perm], 'frame') - a) < 1e-6
     with pytest.raises(ValueError, match='rank=0'):
         reconstruct(W2, method='amp', rank=0)
+
+
+def test_online_emits_one_shape_per_frame_in_constant_time():
+    import time
+
+    from nrsfm_ros.core.nrsfm import OnlineNRSfM
+    W, S, _ = low_rank_sequence(K=2, F=60, P=2000)
+    on = OnlineNRSfM(window=30, rank=2)
+    out, times = [], []
+    for f in range(60):
+        t = time.perf_counter()
+        got = on.push(W[2 * f:2 * f + 2].T)
+        if f >= 30:
+            times.append(time.perf_counter() - t)
+        assert len(got) == (0 if f < 29 else 30 if f == 29 else 1)
+        out += got
+    assert [o.index for o in out] == list(range(60))
+    S_hat = np.stack([o.S * o.scale for o in out])
+    # the online frames are as good as the initial window that gave their basis
+    window = e3d_frobenius(S_hat[:30], S[:30], 'frame', scale=True)
+    online = e3d_frobenius(S_hat[30:], S[30:], 'frame', scale=True)
+    assert online < 0.07 and online < 1.5 * window + 0.01
+    assert np.median(times) < 0.02            # one frame of 2,000 points, far below 1/30 s

@@ -9,6 +9,7 @@ import numpy as np
 from .amp import amp
 from .bmm import bmm, smsr
 from .factorization import low_rank, rigid
+from .online import OnlineNRSfM
 from .result import NRSfMResult, check_tracks
 from .window import WindowNRSfM
 
@@ -29,5 +30,5 @@ def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'lowra
     return METHODS[method](W, V, **params)
 
 
-__all__ = ['METHODS', 'NRSfMResult', 'WindowNRSfM', 'check_tracks', 'low_rank', 'reconstruct',
-           'rigid']
+__all__ = ['METHODS', 'NRSfMResult', 'OnlineNRSfM', 'WindowNRSfM', 'check_tracks', 'low_rank',
+           'reconstruct', 'rigid']
