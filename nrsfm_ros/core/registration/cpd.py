@@ -36,19 +36,28 @@ def estep(X: np.ndarray, TY: np.ndarray, sigma2: float, w: float, chunk: int = 2
     X32, TY32 = X.astype(np.float32), TY.astype(np.float32)
     xx = (X32 ** 2).sum(1)
     den = np.zeros(N, np.float64)
-    for a in range(0, M, chunk):
+    cache = [] if M * N <= 4e7 else None      # keep the kernel chunks when they fit (~160 MB)
+    scale = np.float32(-0.5 / sigma2)
+
+    def kernel(a: int) -> np.ndarray:
         Yc = TY32[a:a + chunk]
         d2 = (Yc ** 2).sum(1)[:, None] + xx[None] - 2 * Yc @ X32.T
-        den += np.exp(-np.maximum(d2, 0) / (2 * sigma2)).sum(0)
+        np.maximum(d2, 0, out=d2)
+        d2 *= scale
+        return np.exp(d2, out=d2)
+    for a in range(0, M, chunk):
+        K = kernel(a)
+        den += K.sum(0)
+        if cache is not None:
+            cache.append(K)
     den += c
     inv = np.where(den > 1e-30, 1.0 / np.maximum(den, 1e-30), 0.0).astype(np.float32)
     P1 = np.empty(M)
     Pt1 = np.zeros(N)
     PX = np.empty((M, D))
-    for a in range(0, M, chunk):
-        Yc = TY32[a:a + chunk]
-        d2 = (Yc ** 2).sum(1)[:, None] + xx[None] - 2 * Yc @ X32.T
-        Pc = np.exp(-np.maximum(d2, 0) / (2 * sigma2)) * inv[None]
+    for i, a in enumerate(range(0, M, chunk)):
+        Pc = cache[i] if cache is not None else kernel(a)
+        Pc *= inv[None]
         P1[a:a + chunk] = Pc.sum(1)
         Pt1 += Pc.sum(0)
         PX[a:a + chunk] = Pc @ X32
@@ -117,7 +126,8 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
         max_iterations: int = 100, tolerance: float = 1e-6, scale: bool = False,
         beta: float = 2.0, lam: float = 2.0, landmarks: int = 300, max_points: int = 3000,
         seed: int = 0, normalise: bool = True, priors: np.ndarray | None = None,
-        alpha: float = 1e-3) -> RegistrationResult:
+        alpha: float = 1e-3, refine_points: int = 5000, fine_iterations: int = 15,
+        sigma2: float | None = None) -> RegistrationResult:
     """CPD of ``source`` onto ``target`` (kind rigid | affine | nonrigid).
 
     ``w`` outlier weight in [0, 1); ``beta``, ``lam`` kernel width and smoothness of the
@@ -126,7 +136,11 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
 
     ECPD: ``priors`` (K, 2) integer pairs (source index, target index) of known
     correspondences add a fixed-assignment term weighted by sigma^2 / ``alpha`` to the M-step
-    (small ``alpha``: nearly hard constraints); the subsamples always keep the prior points."""
+    (small ``alpha``: nearly hard constraints); the subsamples always keep the prior points.
+
+    Non-rigid inputs larger than ``max_points`` get a second, fine stage: CPD from the coarse
+    result on a subsample of ``refine_points`` for ``fine_iterations``, starting at the coarse
+    stage's final variance (0 disables).  ``sigma2`` overrides the initial variance (normalised units)."""
     t0 = time.perf_counter()
     if kind not in ('rigid', 'affine', 'nonrigid'):
         raise ValueError(f"kind={kind!r}: expected 'rigid', 'affine' or 'nonrigid'")
@@ -171,7 +185,7 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
     if has_priors:     # prior pairs in subsample indices
         pm = np.searchsorted(yi, priors[:, 0])
         pn = np.searchsorted(xi, priors[:, 1])
-    sigma2 = _sigma2(X, Y)
+    sigma2 = _sigma2(X, Y) if sigma2 is None else float(sigma2)
     R, s, t, Bm = np.eye(3), 1.0, np.zeros(3), np.eye(3)
     Wn = np.zeros_like(Y)
     nys = Nystrom(Y, beta, landmarks, rng) if kind == 'nonrigid' else None
@@ -225,6 +239,14 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
             assert nys is not None and Bf is not None
             TYall = Yn + nys.features(Yn) @ (Bf.T @ Wn)
     aligned = TYall * sc + cx
+    if kind == 'nonrigid' and len(Yn) > len(Y) and refine_points > len(Y):
+        fine = cpd(aligned, X0, 'nonrigid', w=w, max_iterations=fine_iterations,
+                   tolerance=tolerance, beta=beta, lam=lam, landmarks=landmarks,
+                   max_points=refine_points, seed=seed + 1, normalise=normalise,
+                   refine_points=0, sigma2=sigma2,
+                   priors=priors if has_priors else None, alpha=alpha)
+        aligned = fine.aligned
+        it += fine.iterations
     T = np.eye(4)
     if kind != 'nonrigid':
         # aligned = sc * (A (y - cy) / sy + t) + cx = A y + (cx + sc t - A cy)  (sc == sy)
