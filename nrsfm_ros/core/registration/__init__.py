@@ -18,8 +18,8 @@ METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga'])
 ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
               'max_points', 'target_tree'}
 CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
-              'max_points', 'seed', 'normalise', 'priors', 'alpha', 'refine_points', 'fine_iterations',
-              'sigma2'}
+              'max_points', 'seed', 'normalise', 'priors', 'alpha', 'refine_points',
+              'fine_iterations', 'sigma2'}
 GA_PARAMS = {'max_iterations', 'tolerance', 'eps', 'dt', 'damping', 'max_points', 'priors',
              'prior_mass', 'seed', 'polish_trim'}
 

@@ -140,7 +140,8 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
 
     Non-rigid inputs larger than ``max_points`` get a second, fine stage: CPD from the coarse
     result on a subsample of ``refine_points`` for ``fine_iterations``, starting at the coarse
-    stage's final variance (0 disables).  ``sigma2`` overrides the initial variance (normalised units)."""
+    stage's final variance (0 disables).  ``sigma2`` overrides the initial variance
+    (normalised units)."""
     t0 = time.perf_counter()
     if kind not in ('rigid', 'affine', 'nonrigid'):
         raise ValueError(f"kind={kind!r}: expected 'rigid', 'affine' or 'nonrigid'")
