@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .reference_flow import PRESETS, check_grey, texture_mask
+from .reference_flow import PRESETS, check_grey, reference_pixels
 from .subspace import GridSampler, fit_basis, fit_coefficients
 
 
@@ -164,16 +164,7 @@ class MFOFTracker:
         self._set_learned(np.zeros((0, h * w), np.float32))
         if self.epoch == 0:
             self.history_grid = self._grid
-        mask = texture_mask(grey, min_std=c.min_std) if c.mask == 'texture' \
-            else np.ones((h, w), bool)
-        grid = np.zeros((h, w), bool)
-        grid[::c.stride, ::c.stride] = True
-        ys, xs = np.nonzero(mask & grid)
-        if xs.size < 4:
-            raise ValueError(f'reference frame: only {xs.size} trackable pixels (need >= 4); '
-                             'lower min_std or use mask=full')
-        self._lin = (ys * w + xs).astype(np.intp)
-        self._xy = np.stack([xs, ys], axis=1).astype(np.float32)
+        mask, self._lin, self._xy = reference_pixels(grey, c.mask, c.stride, c.min_std)
         self.ids = ((self.epoch * h * w + self._lin) % 2 ** 32).astype(np.uint32)
         self._mask_lin = np.flatnonzero(mask)
         # a fixed strided sample of mask pixels for the per-frame coefficient fit

@@ -46,6 +46,21 @@ def check_grey(grey: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
     return grey
 
 
+def reference_pixels(grey: np.ndarray, mask: str, stride: int, min_std: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracked pixels of a reference frame: the mask (H, W), the linear indices
+    ``y * W + x`` of every ``stride``-th mask pixel, and their (x, y) positions (P, 2)."""
+    h, w = grey.shape
+    m = texture_mask(grey, min_std=min_std) if mask == 'texture' else np.ones((h, w), bool)
+    grid = np.zeros((h, w), bool)
+    grid[::stride, ::stride] = True
+    ys, xs = np.nonzero(m & grid)
+    if xs.size < 4:
+        raise ValueError(f'reference frame: only {xs.size} trackable pixels (need >= 4); '
+                         'lower min_std or use mask=full')
+    return m, (ys * w + xs).astype(np.intp), np.stack([xs, ys], axis=1).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class TrackFrame:
     """Tracks of one frame: uv (P, 2) pixel positions, visibility (P,) in [0, 1],
@@ -92,16 +107,8 @@ class ReferenceFlowTracker:
 
     def _set_reference(self, grey: np.ndarray) -> None:
         h, w = grey.shape
-        mask = texture_mask(grey, min_std=self.min_std) if self.mask_mode == 'texture' \
-            else np.ones((h, w), bool)
-        grid = np.zeros((h, w), bool)
-        grid[::self.stride, ::self.stride] = True
-        ys, xs = np.nonzero(mask & grid)
-        if xs.size < 4:
-            raise ValueError(f'reference frame: only {xs.size} trackable pixels (need >= 4); '
-                             'lower min_std or use mask=full')
-        self.ids = (ys * w + xs).astype(np.uint32)
-        self._xy = np.stack([xs, ys], axis=1).astype(np.float32)
+        _, lin, self._xy = reference_pixels(grey, self.mask_mode, self.stride, self.min_std)
+        self.ids = lin.astype(np.uint32)
         self._ref = grey
         self._flow = np.zeros((h, w, 2), np.float32)
 
