@@ -12,15 +12,17 @@ Per incoming frame (streaming, bounded latency):
    illumination-robust warping residual (high-pass intensities) give an occlusion probability;
    visibility = (1 - occlusion) x in-view;
 4. subspace step: the frame's coefficients are fitted to the measured flow by weighted, Huber-
-   robust least squares; the output flow fuses data and subspace per pixel
-   ``(w u + beta s) / (w + beta)``, so occluded trajectories are carried by the subspace;
-5. windowed refinement: every ``refine_every`` frames the learned basis is re-estimated by weighted
-   EM-SVD over the last ``window`` frames (spatially regularised).
+   robust least squares with a temporal prior (the constant-velocity prediction); the output
+   fuses data and subspace per pixel ``(w u + beta (s + o)) / (w + beta)``, where o is the
+   pixel's last offset from the subspace, so occluded trajectories are carried by the subspace;
+5. windowed refinement: every ``refine_every`` frames the learned basis is re-estimated over the
+   last ``window`` frames by weighted alternating least squares on a coarse grid, spatially
+   regularised and warm-started (subspace.fit_basis).
 
-``track_sequence`` runs the same tracker over a whole sequence and then alternates global
-subspace fits with re-seeded data steps (batch MFOF).  When too little of the reference stays
-visible for ``reselect_patience`` frames, the current frame becomes the new reference (track ids
-then change: ``epoch * H * W + y * W + x``).
+``track_sequence`` runs the same tracker over a whole sequence, then re-fuses every frame with
+a subspace fitted on a window centred on it (past and future frames; ``batch_rank`` images).
+When too little of the reference stays visible for ``reselect_patience`` frames, the next frame
+becomes the new reference (track ids then change: ``epoch * H * W + y * W + x``).
 """
 from __future__ import annotations
 
@@ -292,7 +294,7 @@ class MFOFTracker:
             self.refine()
 
     def refine(self) -> None:
-        """Re-estimate the learned basis over the window (weighted EM-SVD)."""
+        """Re-estimate the learned basis over the window (weighted ALS, warm-started)."""
         c = self.config
         win = self._win
         if not win.data:
@@ -313,6 +315,7 @@ class MFOFTracker:
                    for m in self._last_models]
         # the per-pixel offset from the subspace, re-expressed in the new basis
         self._offset = self._last_models[-1] - self._q[-1] @ self.basis
+
 
 @dataclass
 class TrackResult:

@@ -4,10 +4,11 @@ The reference->frame displacements of all P reference pixels over F frames form 
 du_1, dv_1, du_2, ...).  Smooth non-rigid motion makes D close to rank R: D ~= Q B, with Q (2F x R)
 per-frame coefficients and B (R x P) basis images (per-pixel coefficients of the trajectory
 basis).  B always contains a fixed quadratic polynomial block (so global affine-like motion is
-representable from the first frame on) plus R learned images, fitted by weighted EM-SVD:
-unreliable entries (weight ~0, e.g. occluded) are imputed from the current model before each SVD.
-Learned basis images are regularised spatially by confidence-weighted (normalised) Gaussian
-smoothing on the image grid.  All functions are vectorised over pixels.
+representable from the first frame on) plus R learned images, initialised by one EM-SVD step
+(unreliable entries, weight ~0 such as occluded ones, imputed from the current model) and refined
+by weighted alternating least squares with a pull towards the spatially smoothed basis, so pixels
+hidden in most frames are filled from their neighbours.  All functions are vectorised over
+pixels; ``GridSampler`` moves the smooth basis between the full and a coarse grid.
 """
 from __future__ import annotations
 
