@@ -298,10 +298,10 @@ def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 
     return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0)
 
 
-def dct_smooth(Wc: np.ndarray, V: np.ndarray, d: int) -> np.ndarray:
-    """Project every point trajectory (rows of each coordinate over frames) onto the first
-    ``d`` DCT-II vectors; invisible entries are first filled by a rank-limited impute."""
-    F = V.shape[0]
+def dct_smooth(Wc: np.ndarray, d: int) -> np.ndarray:
+    """Project every point trajectory (each coordinate over frames) of complete tracks
+    Wc (2F, P) onto the first ``d`` DCT-II vectors (impute hidden entries first)."""
+    F = Wc.shape[0] // 2
     X = Wc.reshape(F, 2, -1)
     C = dct(X, norm='ortho', axis=0)
     C[d:] = 0.0
@@ -323,7 +323,7 @@ def smsr(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float =
     Wc, t = _centre(W, V)
     X = impute_low_rank(Wc, V, 3 * (rank or 4)) if (V < 0.5).any() else Wc
     d = max(2, int(round(dct_fraction * F)))
-    Ws = dct_smooth(X, V, d)
+    Ws = dct_smooth(X, d)
     ones = np.ones_like(V)
     R2 = dai_rotations(Ws, ones, rank, trace_weight) if rank else \
         averaged_rotations(Ws, ones, trace_weight=trace_weight)

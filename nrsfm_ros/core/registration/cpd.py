@@ -166,13 +166,14 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
         if alpha <= 0:
             raise ValueError(f'alpha={alpha}: expected > 0')
     # normalisation (undone at the end)
-    cx, cy = X0.mean(0), Y0.mean(0)
-    sc = float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())) if normalise else 1.0
-    sy = float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())) if normalise else 1.0
-    if not normalise:
-        cx = cy = np.zeros(3)
-    sc = sy = max(sc, sy, 1e-12) if normalise else 1.0
-    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sy
+    # both sets centred and scaled by one factor (the larger RMS radius)
+    cx, cy, sc = np.zeros(3), np.zeros(3), 1.0
+    if normalise:
+        cx, cy = X0.mean(0), Y0.mean(0)
+        sc = max(float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())),
+                 float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())), 1e-12)
+    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sc
+
     def subsample(n: int, keep: np.ndarray) -> np.ndarray:
         if n <= max_points:
             return np.arange(n)
@@ -250,7 +251,7 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
         it += fine.iterations
     T = np.eye(4)
     if kind != 'nonrigid':
-        # aligned = sc * (A (y - cy) / sy + t) + cx = A y + (cx + sc t - A cy)  (sc == sy)
+        # aligned = sc * (A (y - cy) / sc + t) + cx = A y + (cx + sc t - A cy)
         T[:3, :3] = A_full
         T[:3, 3] = cx + sc * t - A_full @ cy
     from scipy.spatial import cKDTree
