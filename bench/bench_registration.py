@@ -31,6 +31,7 @@ from nrsfm_ros.io.export import read_ply  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data' / 'registration'
 AXIS = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+SCALE_N = (35_000, 100_000, 300_000, 1_000_000)
 
 
 def bunny() -> np.ndarray:
@@ -83,6 +84,49 @@ def peers_rigid(src, tgt):
     except ImportError:
         pass
     try:
+        import open3d as o3d
+        reg = o3d.pipelines.registration
+
+        def cloud(P, voxel):
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+            pc = pc.voxel_down_sample(voxel)
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
+            return pc
+
+        def o3(kind):
+            def f():
+                s, t = cloud(src, 0.01), cloud(tgt, 0.01)
+                T0 = np.eye(4)
+                T0[:3, 3] = tgt.mean(0) - src.mean(0)
+                est = {'ICP': reg.TransformationEstimationPointToPoint(),
+                       'p2plane': reg.TransformationEstimationPointToPlane(),
+                       'GICP': reg.TransformationEstimationForGeneralizedICP()}[kind]
+                crit = reg.ICPConvergenceCriteria(max_iteration=100)
+                fn = reg.registration_generalized_icp if kind == 'GICP' \
+                    else reg.registration_icp
+                return np.asarray(fn(s, t, 0.1, T0, est, crit).transformation)
+            return f
+
+        def o3_global():
+            voxel = 0.02
+            s, t = cloud(src, voxel), cloud(tgt, voxel)
+            feat = [reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(
+                radius=5 * voxel, max_nn=100)) for c in (s, t)]
+            ransac = reg.registration_ransac_based_on_feature_matching(
+                s, t, feat[0], feat[1], True, 1.5 * voxel,
+                reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                 reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+                reg.RANSACConvergenceCriteria(100000, 0.999))
+            fine = reg.registration_icp(cloud(src, 0.01), cloud(tgt, 0.01), 0.02,
+                                        ransac.transformation,
+                                        reg.TransformationEstimationPointToPlane())
+            return np.asarray(fine.transformation)
+        out += [('open3d ICP', o3('ICP')), ('open3d p2plane', o3('p2plane')),
+                ('open3d GICP', o3('GICP')), ('open3d FPFH+RANSAC+ICP', o3_global)]
+    except ImportError:
+        pass
+    try:
         from pycpd import RigidRegistration
         rng = np.random.default_rng(1)
 
@@ -106,20 +150,25 @@ def run() -> list[dict]:
     B = bunny()
     rows = []
     rigid = [('icp', {'max_iterations': 100}), ('icp-point-to-plane', {'max_iterations': 100}),
-             ('cpd-rigid', {'w': 0.1, 'max_points': 1500}), ('ga', {})]
+             ('icp', {'max_iterations': 100, 'voxel': 0.01}),
+             ('icp-point-to-plane', {'max_iterations': 100, 'voxel': 0.01}),
+             ('cpd-rigid', {'w': 0.1, 'max_points': 1500}), ('ga', {}), ('bhrga', {})]
     for label, deg, kw in (('rigid 30 deg, clean, 35k', 30, {}),
                            ('rigid 90 deg, clean, 35k', 90, {}),
                            ('rigid 60 deg, 30% missing + 50% outliers, 35k', 60,
                             {'outliers': 0.5, 'missing': 0.3})):
         src, tgt, R, priors = rigid_case(B, deg, rng, **kw)
         cases = rigid + ([('ecpd-rigid', {'w': 0.5, 'max_points': 1500, 'priors': priors}),
-                          ('ga', {'priors': priors})] if kw else [])
+                          ('ga', {'priors': priors}), ('bhrga', {'priors': priors})]
+                         if kw else [])
         for method, params in cases:
             if method == 'cpd-rigid' and kw:
                 params = {**params, 'w': 0.5}
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
             name = f'{method} (1% priors)' if 'priors' in params else method
+            if 'voxel' in params:
+                name += f" (voxel {params['voxel']})"
             rows.append({'scenario': label, 'method': name, 'ours': True,
                          'error': rotation_error_deg(res.T_target_source[:3, :3], R),
                          'unit': 'deg', 'seconds': time.perf_counter() - t})
@@ -128,6 +177,26 @@ def run() -> list[dict]:
             T = fn()
             rows.append({'scenario': label, 'method': name, 'ours': False,
                          'error': rotation_error_deg(T[:3, :3], R), 'unit': 'deg',
+                         'seconds': time.perf_counter() - t})
+    # scale: time against N for the Barnes-Hut path (bunny resampled with noise, 30 degrees)
+    R = Rotation.from_rotvec(np.radians(30) * AXIS).as_matrix()
+    for n in SCALE_N:
+        src = B[rng.integers(0, len(B), n)] + rng.normal(0, 0.005, (n, 3))
+        tgt = (B[rng.integers(0, len(B), n)] + rng.normal(0, 0.005, (n, 3))) @ R.T \
+            + [0.1, -0.05, 0.2]
+        label = f'scale: rigid 30 deg, {n / 1000:.0f}k points'
+        t = time.perf_counter()
+        res = register(src, tgt, method='bhrga')
+        rows.append({'scenario': label, 'method': 'bhrga', 'ours': True, 'unit': 'deg',
+                     'error': rotation_error_deg(res.T_target_source[:3, :3], R),
+                     'seconds': time.perf_counter() - t})
+        for name, fn in peers_rigid(src, tgt):
+            if 'pycpd' in name:
+                continue
+            t = time.perf_counter()
+            T = fn()
+            rows.append({'scenario': label, 'method': name, 'ours': False, 'unit': 'deg',
+                         'error': rotation_error_deg(T[:3, :3], R),
                          'seconds': time.perf_counter() - t})
     for n in (1000, 5000, len(B)):
         src = B[rng.choice(len(B), n, replace=False)]

@@ -123,21 +123,36 @@ class ReconstructorParams(Params):
 @dataclass(frozen=True)
 class RegistrarParams(Params):
     method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane',
-                                      'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ga'),
+                                      'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ecpd-rigid',
+                                      'ecpd-nonrigid', 'ga', 'bhrga'),
                        'registration method')
     max_iterations: int = rule(30, _at_least(1), 'iteration cap (ICP and CPD iterations; '
-                               'GA dynamics steps, which needs ~300)')
+                               'GA dynamics steps, which needs ~300; BH-RGA L-BFGS '
+                               'iterations per softening stage)')
     max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
     tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
+    voxel: float = rule(0.0, _non_negative, 'icp*: voxel-grid edge (m) of the coarse-to-fine '
+                        'levels (4, 2, 1 x voxel; centroids average the noise; 0: off)')
     w: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
                     'cpd: weight of the uniform outlier component')
     beta: float = rule(2.0, _positive, 'cpd-nonrigid: kernel width (units of the RMS radius)')
     lam: float = rule(2.0, _positive, 'cpd-nonrigid: smoothness of the displacement field')
+    prior_matches: int = rule(0, _non_negative,
+                              'ecpd-*, ga, bhrga: prior correspondences taken from track_id '
+                              'values the cloud shares with the reference (evenly spread; 0: '
+                              'none; ecpd-* needs > 0)')
     try_reflection: bool = rule(True, None,
                                 'also try the depth-mirrored source (orthographic NRSfM has a '
                                 'depth reflection ambiguity) on the first cloud and every '
                                 '10th, and keep the better fit')
+
+    def check(self) -> list[tuple[str, str]]:
+        errors = super().check()
+        if self.method.startswith('ecpd') and self.prior_matches == 0:
+            errors.append(('prior_matches', f'method={self.method!r} needs prior_matches > 0 '
+                           '(track ids shared with the reference)'))
+        return errors
 
 
 @dataclass(frozen=True)

@@ -272,12 +272,15 @@ class RegistrarProcessor(Processor):
         self.last_reflected = False
         self._checks = 0
         self._last_T: np.ndarray | None = None
+        self.reference_ids: np.ndarray | None = None
 
     def on_reference(self, msg: Any) -> list[Output]:
         ref = pc2.read_xyz(msg)
         if ref.shape[0] < 3:
             raise MessageError('width', ref.shape[0], 'reference needs at least 3 finite points')
         self.reference = ref
+        self.reference_ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0] \
+            if 'track_id' in pc2.field_names(msg) else None
         self._tree = cKDTree(ref)
         self.reference_frame = str(msg.header.frame_id)
         return []
@@ -294,16 +297,20 @@ class RegistrarProcessor(Processor):
             if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
         src, ids = src[ok], ids[ok]
         p = self.params
-        if p.method.startswith('cpd'):
+        if p.method.startswith(('cpd', 'ecpd')):
             kw: dict[str, Any] = dict(max_iterations=p.max_iterations, tolerance=p.tolerance,
                                       max_points=p.max_points or 10 ** 9, w=p.w)
-            if p.method == 'cpd-nonrigid':
+            if p.method.endswith('nonrigid'):
                 kw.update(beta=p.beta, lam=p.lam)
         elif p.method == 'ga':
             kw = dict(max_iterations=p.max_iterations, max_points=p.max_points or 10 ** 9)
+        elif p.method == 'bhrga':
+            kw = dict(iterations=p.max_iterations)
         else:
             kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
-                      max_points=p.max_points, target_tree=self._tree)
+                      max_points=p.max_points, target_tree=self._tree, voxel=p.voxel)
+        if p.prior_matches and p.method in ('ecpd-rigid', 'ecpd-nonrigid', 'ga', 'bhrga'):
+            kw['priors'] = self._priors(ids, p.prior_matches)
         # The depth reflection of the reconstruction is consistent between windows, so both
         # hypotheses are tried only on the first cloud and every 10th after.
         c = src.mean(axis=0)
@@ -317,7 +324,7 @@ class RegistrarProcessor(Processor):
         else:
             # consecutive clouds move little: start from the previous frame's transform
             moving = mirrored if self.last_reflected else src
-            if p.method.startswith('cpd') or p.method == 'ga':
+            if not p.method.startswith('icp'):
                 res = register(moving, self.reference, method=p.method, **kw)
             else:
                 init = 'centroid' if self._last_T is None else self._last_T
@@ -338,6 +345,20 @@ class RegistrarProcessor(Processor):
                  transform_msg(self.factory, res.T_target_source, stamp, frame,
                                str(msg.header.frame_id))),
                 (TOPICS['displacement'], PC2, disp)]
+
+
+    def _priors(self, ids: np.ndarray, count: int) -> np.ndarray:
+        """(K, 2) (cloud index, reference index) pairs of shared track ids, evenly spread."""
+        if self.reference_ids is None:
+            raise MessageError('track_id', 'absent', 'prior_matches needs a reference cloud '
+                               'with a track_id field')
+        _, si, ri = np.intersect1d(ids, self.reference_ids, assume_unique=False,
+                                   return_indices=True)
+        if si.size == 0:
+            raise MessageError('track_id', 0, 'no track_id shared with the reference, so no '
+                               'prior matches')
+        pick = np.unique(np.linspace(0, si.size - 1, min(count, si.size)).astype(np.intp))
+        return np.stack([si[pick], ri[pick]], axis=1)
 
 
 def transform_msg(factory: MsgFactory, T: np.ndarray, stamp: int, parent: str, child: str

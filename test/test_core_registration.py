@@ -146,3 +146,72 @@ def test_ga_recovers_a_large_rotation_and_uses_prior_masses():
     assert pri.iterations < res.iterations          # the cues speed convergence up
     with pytest.raises(ValueError, match='damping=1.5'):
         register(src, X, method='ga', damping=1.5)
+
+
+def test_cell_tree_masses_and_barnes_hut_energy():
+    from nrsfm_ros.core.registration.bhrga import CellTree, interaction_lists
+    rng = np.random.default_rng(6)
+    X = surface(4000)
+    m = np.full(len(X), 1.0 / len(X))
+    tree = CellTree(X, m, levels=6, lo=X.min(0), size=float(np.ptp(X, 0).max()) * 1.0001)
+    assert len(tree.levels) == 7 and len(tree.levels[0].mass) == 1
+    np.testing.assert_allclose(tree.levels[0].com[0], X.mean(0), atol=1e-12)
+    for L in tree.levels:
+        assert np.isclose(L.mass.sum(), 1.0)
+    for L, nxt in zip(tree.levels[:-1], tree.levels[1:]):      # children partition the next
+        assert L.child_count.sum() == len(nxt.mass)
+        np.testing.assert_allclose(np.add.reduceat(nxt.mass, L.child_start), L.mass)
+    Q = rng.uniform(-1.5, 1.5, (200, 3))
+    leaf = tree.levels[-1]
+    exact = (leaf.mass[None] / np.sqrt(((Q[:, None] - leaf.com[None]) ** 2).sum(-1)
+                                       + 0.01)).sum(1)
+    for theta, tol in ((1e-9, 1e-12), (0.5, 1e-2)):
+        pi, xc, xm = interaction_lists(tree, Q, theta, leaf=6)
+        approx = np.bincount(pi, xm / np.sqrt(((Q[pi] - xc) ** 2).sum(1) + 0.01), len(Q))
+        assert np.abs(approx / exact - 1).max() < tol
+        if theta > 0.1:
+            assert len(pi) < 0.5 * len(Q) * len(leaf.mass)   # far cells were taken whole
+
+
+def test_bhrga_recovers_large_rotations_and_uses_prior_masses():
+    rng = np.random.default_rng(7)
+    X = surface(3000)
+    X[:, 2] += 0.6 * np.exp(-((X[:, 0] - 0.5) ** 2 + (X[:, 1] + 0.4) ** 2) / 0.05)
+    for deg in (30, 60, 120):
+        R, t = _pose(deg)
+        perm = rng.permutation(3000)
+        src = ((X - t) @ R)[perm] + rng.normal(0, 0.002, X.shape)
+        res = register(src, X, method='bhrga')
+        if deg < 90:
+            assert rotation_error_deg(res.T_target_source[:3, :3], R) < 0.5, deg
+            assert np.allclose(res.T_target_source[:3, 3], t, atol=0.01)
+            assert res.method == 'bhrga' and res.fitness > 0.9
+        else:                      # the sheet's flipped pose is the nearer energy minimum ...
+            assert rotation_error_deg(res.T_target_source[:3, :3], R) > 90
+            k = rng.choice(3000, 30, replace=False)      # ... until 1% prior matches weigh in
+            pri = register(src, X, method='bhrga', priors=np.stack([k, perm[k]], 1))
+            assert rotation_error_deg(pri.T_target_source[:3, :3], R) < 0.5
+    with pytest.raises(ValueError, match='eps_end=1.0 > eps_start=0.5'):
+        register(src, X, method='bhrga', eps_end=1.0)
+    with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['trim'\]"):
+        register(src, X, method='bhrga', trim=0.5)
+    with pytest.raises(ValueError, match='priors'):
+        register(src, X, method='bhrga', priors=np.array([[0, 99999]]))
+
+
+def test_voxel_downsample_and_coarse_to_fine_icp():
+    from nrsfm_ros.core.registration.icp import voxel_downsample
+    P = np.array([[0.0, 0, 0], [0.02, 0.04, 0], [1.0, 1.0, 1.0], [1.04, 1.0, 1.0]])
+    V = voxel_downsample(P, 0.1)
+    np.testing.assert_allclose(V[np.argsort(V[:, 0])], [[0.01, 0.02, 0], [1.02, 1.0, 1.0]])
+    rng = np.random.default_rng(8)
+    X = surface(20000) + rng.normal(0, 0.01, (20000, 3))
+    R, t = _pose(30)
+    src = (surface(20000, seed=9) - t) @ R + rng.normal(0, 0.01, (20000, 3))
+    for method in ('icp', 'icp-point-to-plane'):
+        vox = register(src, X, method=method, max_iterations=100, voxel=0.04)
+        assert rotation_error_deg(vox.T_target_source[:3, :3], R) < 0.5, method
+        assert np.allclose(vox.T_target_source[:3, 3], t, atol=0.05)   # slides on the sheet
+        assert vox.correspondences.max() < len(X) and vox.fitness > 0.9
+    with pytest.raises(ValueError, match='voxel=-1'):
+        register(src, X, method='icp', voxel=-1.0)

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from rclpy.parameter import Parameter
 
 HERE = Path(__file__).resolve().parent
@@ -214,3 +215,48 @@ def test_registrar_processor_cpd_methods():
         assert np.sqrt(((aligned - X) ** 2).sum(1).mean()) < 0.02, method
         disp = pc2.read_fields(out['registration/displacement'], ('dx', 'dy', 'dz'))
         np.testing.assert_allclose(disp, aligned - src, atol=1e-4)
+
+
+def test_registrar_processor_priors_from_shared_track_ids():
+    """ECPD/BH-RGA in the registrar: prior matches come from track ids the cloud shares with
+    the reference; they pull a 150-degree pose right where plain CPD fails."""
+    from scipy.spatial.transform import Rotation
+
+    from nrsfm_ros.core.metrics import rotation_error_deg
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.errors import MessageError
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import RegistrarParams
+    from nrsfm_ros.processing import RegistrarProcessor, transform_matrix
+    rng = np.random.default_rng(4)
+    u, v = rng.uniform(-1, 1, (2, 1500))
+    X = np.stack([u, v, 0.4 * np.sin(2 * u) * np.cos(1.5 * v) + 0.2 * u * v], 1)
+    X[:, 2] += 0.6 * np.exp(-((X[:, 0] - 0.5) ** 2 + (X[:, 1] + 0.4) ** 2) / 0.05)
+    R = Rotation.from_rotvec(np.radians(150) * np.array([0.3, 1.0, 0.2])
+                             / np.linalg.norm([0.3, 1.0, 0.2])).as_matrix()
+    perm = rng.permutation(1500)
+    src = ((X - [0.1, -0.2, 0.05]) @ R)[perm]
+    fac = RosbagsFactory()
+
+    def cloud(P, ids, stamp):
+        P = P.astype(np.float32)
+        fields = {'x': P[:, 0], 'y': P[:, 1], 'z': P[:, 2]}
+        if ids is not None:
+            fields['track_id'] = ids.astype(np.uint32)
+        return pc2.to_msg(fields, fac, stamp, 'cam')
+    ids = np.arange(1500) + 1000
+    for method, priors in (('cpd-rigid', 0), ('ecpd-rigid', 15), ('bhrga', 15)):
+        proc = RegistrarProcessor(fac, RegistrarParams(method=method, try_reflection=False,
+                                                       w=0.3, prior_matches=priors,
+                                                       max_iterations=100))
+        proc.handle('reference', cloud(X, ids, 0))
+        out = {topic: msg for topic, _, msg in proc.handle('points',
+                                                           cloud(src, ids[perm], 1))}
+        err = rotation_error_deg(transform_matrix(out['registration/transform'])[:3, :3], R)
+        assert (err > 10) if priors == 0 else (err < 1.0), (method, err)
+    proc.handle('reference', cloud(X, None, 2))          # a reference without track ids
+    with pytest.raises(MessageError, match='track_id'):
+        proc.handle('points', cloud(src, ids[perm], 3))
+    assert proc.stats.malformed == 1
+    with pytest.raises(ValueError, match='needs prior_matches > 0'):
+        RegistrarParams(method='ecpd-nonrigid').updated({})

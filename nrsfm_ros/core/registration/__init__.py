@@ -1,27 +1,31 @@
 """Point set registration by method name: ICP (point-to-point, point-to-plane), Coherent Point
-Drift (rigid, affine, non-rigid), ECPD (CPD with prior correspondences) and the rigid
-gravitational approach (GA).  One result type, ``RegistrationResult``."""
+Drift (rigid, affine, non-rigid), ECPD (CPD with prior correspondences), the rigid
+gravitational approach (GA) and its Barnes-Hut energy-minimising form (BH-RGA).  One result
+type, ``RegistrationResult``."""
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
 
+from .bhrga import bhrga
 from .cpd import cpd
 from .gravitational import ga
 from .icp import ICP_METHODS, RegistrationResult, icp
 
 CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid',
                'ecpd-rigid': 'rigid', 'ecpd-nonrigid': 'nonrigid'}
-METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga'])
+METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga', 'bhrga'])
 # the parameters each family understands (the registrar node passes its own set)
 ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
-              'max_points', 'target_tree'}
+              'max_points', 'target_tree', 'voxel'}
 CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
               'max_points', 'seed', 'normalise', 'priors', 'alpha', 'refine_points',
               'fine_iterations', 'sigma2'}
 GA_PARAMS = {'max_iterations', 'tolerance', 'eps', 'dt', 'damping', 'max_points', 'priors',
              'prior_mass', 'seed', 'polish_trim'}
+BHRGA_PARAMS = {'eps_start', 'eps_end', 'stages', 'theta', 'max_particles', 'iterations',
+                'priors', 'prior_mass', 'polish_trim', 'polish_points', 'seed'}
 
 
 def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: Any
@@ -45,8 +49,13 @@ def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **para
         if unknown:
             raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
         return ga(source, target, **params)
+    if method == 'bhrga':
+        unknown = set(params) - BHRGA_PARAMS
+        if unknown:
+            raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        return bhrga(source, target, **params)
     raise ValueError(f'method={method!r}: expected one of {METHODS}')
 
 
-__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'cpd', 'ga', 'icp',
-           'register']
+__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'bhrga', 'cpd', 'ga',
+           'icp', 'register']

@@ -53,14 +53,25 @@ def kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray | None = None) -> np.ndar
     return T
 
 
-def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None) -> np.ndarray:
-    """Unit normals by PCA of each point's k nearest neighbours (batched eigh)."""
+def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None,
+                     at: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals by PCA of each point's k nearest neighbours (batched eigh); ``at``: only
+    for these point indices."""
     tree = cKDTree(X) if tree is None else tree
     k = min(k, X.shape[0])
-    _, idx = tree.query(X, k=k)
+    _, idx = tree.query(X if at is None else X[at], k=k, workers=-1)
     nb = X[idx] - X[idx].mean(axis=1, keepdims=True)
     cov = np.einsum('nki,nkj->nij', nb, nb)
     return np.linalg.eigh(cov)[1][:, :, 0]
+
+
+def voxel_downsample(X: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroid of the points in each occupied cell of a grid with edge ``voxel``."""
+    ijk = np.floor((X - X.min(0)) / voxel).astype(np.int64)
+    dims = ijk.max(0) + 1
+    _, inv, cnt = np.unique((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2],
+                            return_inverse=True, return_counts=True)
+    return np.stack([np.bincount(inv, X[:, k]) for k in range(3)], 1) / cnt[:, None]
 
 
 def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -71,7 +82,7 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         max_iterations: int = 50, tolerance: float = 1e-6,
         max_correspondence_distance: float = np.inf, init: str | np.ndarray = 'centroid',
         trim: float = 0.9, max_points: int = 5000, target_tree: cKDTree | None = None,
-        ) -> RegistrationResult:
+        voxel: float = 0.0) -> RegistrationResult:
     """Align ``source`` (N, 3) to ``target`` (M, 3).
 
     ``init``: 'centroid' (translate centroids together), 'identity', or a 4x4 T_target_source.
@@ -79,6 +90,9 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     ``target_tree``: a cKDTree of ``target`` to reuse across calls (a fixed reference).
     ``max_points``: the iterations use an evenly strided subset of at most this many source
     points (the transform is then applied to all of them); 0 uses every point.
+    ``voxel``: when > 0, both sets are reduced to voxel-grid centroids of this edge (input
+    units) for the iterations -- faster, and the centroids average the sensor noise out of the
+    pairs and the normals (``target_tree`` then only serves the final correspondences).
     """
     t0 = time.perf_counter()
     if method not in ('point_to_point', 'point_to_plane'):
@@ -97,39 +111,63 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         T = np.asarray(init, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f'init: expected a 4x4 transform, got shape {T.shape}')
-    full_src = src
-    if max_points and src.shape[0] > max_points:
-        src = src[np.linspace(0, src.shape[0] - 1, max_points).astype(np.intp)]
-    tree = cKDTree(dst) if target_tree is None else target_tree
-    normals = estimate_normals(dst, tree=tree) if method == 'point_to_plane' else None
-    prev = np.inf
+    if voxel < 0 or not np.isfinite(voxel):
+        raise ValueError(f'voxel={voxel}: expected >= 0')
+    full_src, full_dst = src, dst
+    # voxel > 0: coarse-to-fine over grids of 4, 2, 1 x voxel (a wide basin and few points
+    # first); otherwise one level on the (strided) points themselves
+    scales = (4.0, 2.0, 1.0) if voxel > 0 else (0.0,)
+    it = total = 0
     converged = False
-    it = 0
-    keep = np.ones(src.shape[0], bool)
-    idx = np.zeros(src.shape[0], np.intp)
     rmse = np.inf
-    for it in range(1, max_iterations + 1):
-        moved = _apply(T, src)
-        dist, idx = tree.query(moved)
-        keep = dist <= max_correspondence_distance
-        if trim < 1.0 and keep.sum() > 10:
-            cutoff = np.quantile(dist[keep], trim)
-            keep &= dist <= cutoff
-        if keep.sum() < 3:
-            break
-        rmse = float(np.sqrt(np.mean(dist[keep] ** 2)))
-        if method == 'point_to_point':
-            dT = kabsch(moved[keep], dst[idx[keep]])
+    for level, f in enumerate(scales):
+        if f > 0:
+            src, dst = voxel_downsample(full_src, f * voxel), voxel_downsample(full_dst, f * voxel)
+            tree = cKDTree(dst)
         else:
-            assert normals is not None
-            dT = _point_to_plane_step(moved[keep], dst[idx[keep]], normals[idx[keep]])
-        T = dT @ T
-        if abs(prev - rmse) <= tolerance * max(rmse, 1e-12):
-            converged = True
-            break
-        prev = rmse
+            tree = cKDTree(dst) if target_tree is None else target_tree
+        if max_points and src.shape[0] > max_points:
+            src = src[np.linspace(0, src.shape[0] - 1, max_points).astype(np.intp)]
+        # normals of the target points that get paired, computed when first paired
+        normals = np.full(dst.shape, np.nan) if method == 'point_to_plane' else None
+        last = level == len(scales) - 1
+        prev = np.inf
+        converged = False
+        for it in range(1, max_iterations + 1):
+            moved = _apply(T, src)
+            dist, idx = tree.query(moved, workers=-1)
+            keep = dist <= max_correspondence_distance
+            if trim < 1.0 and keep.sum() > 10:
+                cutoff = np.quantile(dist[keep], trim)
+                keep &= dist <= cutoff
+            if keep.sum() < 3:
+                break
+            rmse = float(np.sqrt(np.mean(dist[keep] ** 2)))
+            if method == 'point_to_point':
+                dT = kabsch(moved[keep], dst[idx[keep]])
+            else:
+                assert normals is not None
+                pairs = idx[keep]
+                todo = np.unique(pairs[np.isnan(normals[pairs, 0])])
+                if todo.size:
+                    normals[todo] = estimate_normals(dst, k=20 if f > 0 else 10, tree=tree,
+                                                     at=todo)
+                dT = _point_to_plane_step(moved[keep], dst[idx[keep]], normals[idx[keep]])
+            T = dT @ T
+            # converged: the RMSE settles, or (voxel levels) the step is below 1e-4 rad (1e-3
+            # on the coarse levels) and a hundredth of the cell edge
+            small = f > 0 and np.abs(dT[:3, :3] - np.eye(3)).max() < (1e-4 if last else 1e-3) \
+                and np.abs(dT[:3, 3]).max() < 1e-2 * f * voxel
+            if abs(prev - rmse) <= tolerance * max(rmse, 1e-12) or small:
+                converged = True
+                break
+            prev = rmse
+        total += it
+    it = total
     aligned = _apply(T, full_src)
-    dist, idx = tree.query(aligned)
+    if voxel > 0:
+        tree = cKDTree(full_dst) if target_tree is None else target_tree
+    dist, idx = tree.query(aligned, workers=-1)
     keep = dist <= max_correspondence_distance
     corr = np.where(keep, idx, -1)
     return RegistrationResult(T_target_source=T, aligned=aligned,
@@ -143,7 +181,8 @@ def _point_to_plane_step(A: np.ndarray, B: np.ndarray, n: np.ndarray) -> np.ndar
     """Linearised point-to-plane least squares (small-angle), one Gauss-Newton step."""
     J = np.hstack([np.cross(A, n), n])
     r = np.einsum('ij,ij->i', B - A, n)
-    x = np.linalg.lstsq(J, r, rcond=None)[0]
+    JtJ = J.T @ J                        # normal equations: 6x6, far cheaper than lstsq
+    x = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ r)
     wx, wy, wz = x[:3]
     Rm = np.array([[1, -wz, wy], [wz, 1, -wx], [-wy, wx, 1]])
     U, _, Vt = np.linalg.svd(Rm)
