@@ -6,10 +6,11 @@ Data: ../shared/data/registration (Stanford bunny 34,834 points; CPD fish 2-D), 
 bounding-box diagonal 1, Gaussian noise sigma = 0.005, target an independent permutation/subsample.
 Scenarios follow issue 4: rigid 30 and 90 degrees clean; 60 degrees with a 30% missing part and
 50% uniform outliers in the target; a smooth Gaussian-RBF warp (start RMSE 0.08) at 1k, 5k and
-35k points (RMSE to the true warped positions); fish 2-D.  Peers run in the same process when
-installed (`.venv/bin/pip install -r bench/requirements-peers.txt`: pycpd, small_gicp; open3d and
-probreg are not installed here); each row shows error and time as ratios to our best method of
-the scenario.
+35k points (RMSE to the true warped positions); fish 2-D; and a scale series (30 degrees, the
+bunny resampled with noise to 35k ... 1M points).  Peers run in the same process when installed
+(`.venv/bin/pip install -r bench/requirements-peers.txt`: small_gicp, open3d ICP / point-to-plane
+/ GICP / FPFH+RANSAC+ICP, probreg FilterReg and CPD, pycpd); each row shows error and time as
+ratios to our best method of the scenario.
 """
 from __future__ import annotations
 
@@ -124,6 +125,38 @@ def peers_rigid(src, tgt):
             return np.asarray(fine.transformation)
         out += [('open3d ICP', o3('ICP')), ('open3d p2plane', o3('p2plane')),
                 ('open3d GICP', o3('GICP')), ('open3d FPFH+RANSAC+ICP', o3_global)]
+    except ImportError:
+        pass
+    try:
+        from probreg import cpd as pcpd
+        from probreg import filterreg
+
+        def ds(P, n=3000):
+            return P[np.random.default_rng(2).choice(len(P), min(n, len(P)), replace=False)]
+
+        def pr_tf(tf):
+            T = np.eye(4)
+            T[:3, :3] = tf.scale * tf.rot
+            T[:3, 3] = tf.t
+            return T
+
+        def fr():
+            s, t = ds(src), ds(tgt)
+            c = t.mean(0) - s.mean(0)
+            res = filterreg.registration_filterreg(s + c, t, maxiter=100, update_sigma2=True,
+                                                   w=0.1)
+            T = pr_tf(res.transformation)
+            T[:3, 3] += T[:3, :3] @ c
+            return T
+
+        def pc():
+            s, t = ds(src, 1500), ds(tgt, 1500)
+            c = t.mean(0) - s.mean(0)
+            res = pcpd.registration_cpd(s + c, t, 'rigid', w=0.1, maxiter=100)
+            T = pr_tf(res.transformation)
+            T[:3, 3] += T[:3, :3] @ c
+            return T
+        out += [('probreg FilterReg (3k)', fr), ('probreg CPD rigid (1.5k)', pc)]
     except ImportError:
         pass
     try:

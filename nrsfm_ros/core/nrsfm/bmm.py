@@ -243,6 +243,28 @@ def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: 
     return A + n[:, :, None] * d[:, None, :]
 
 
+def procrustean_gauge(S: np.ndarray, R: np.ndarray, reweight: int = 5
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Fix the per-frame rotation gauge: rotate every object-frame shape S_f (F, 3, P) onto
+    the mean shape by weighted orthogonal Procrustes and move the rotation into the camera
+    (R_f Q_f, so R_f S_f is unchanged).  The weights, 1 / (variance of the point about the
+    mean + the median variance), re-estimated ``reweight`` times, make the alignment follow
+    the least-deforming points (a body's trunk rather than its arms): the deformations keep no
+    rotation that the cameras could explain, the Procrustean assumption of PND-style models."""
+    P = S.shape[2]
+    w = np.ones(P)
+    A, Q = S, np.broadcast_to(np.eye(3), (S.shape[0], 3, 3))
+    for _ in range(max(1, reweight)):
+        M = np.einsum('fip,jp->fij', S * w, S.mean(0))
+        U, _, Vt = np.linalg.svd(M)
+        U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+        Q = U @ Vt                                           # S_f ~= Q_f mean
+        A = np.einsum('fji,fjp->fip', Q, S)
+        var = ((A - A.mean(0)) ** 2).sum(1).mean(0)
+        w = 1.0 / (var + max(float(np.median(var)), 1e-300))
+    return A, R @ Q
+
+
 def exact_rank(Wc: np.ndarray, rel: float = 1e-11) -> int:
     """Numerical rank of W (relative threshold near float precision): 3K on noise-free
     rank-K data, full on measured tracks."""
@@ -272,29 +294,47 @@ def noise_level(Wc: np.ndarray, rank: int = 12) -> float:
     return float(np.sqrt((s[rank:] ** 2).sum() / max((s ** 2).sum(), 1e-300)))
 
 
+def _gauge_rounds(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, S: np.ndarray, lam: float,
+                  iterations: int, rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """``rounds`` x (Procrustean gauge, then the nuclear-norm shapes for the new cameras)."""
+    for _ in range(rounds):
+        S, R = procrustean_gauge(S, complete_rotations(R2))
+        R2 = R[:, :2]
+        S = bmm_shapes(Wc, V, R2, lam, iterations, init=S)[0]
+    return R2, S
+
+
 def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 4.0,
-        iterations: int = 100, trace_weight: float = 1e-3) -> NRSfMResult:
+        iterations: int = 100, trace_weight: float = 1e-3, gauge_rounds: int = 1
+        ) -> NRSfMResult:
     """Dai-Li-He prior-free NRSfM: trace-minimising metric projection for the cameras, then
     nuclear-norm shapes (BMM) by ADMM.  ``rank`` is K of the motion factorisation (3K), 0 to
     average the cameras over K = 2..6 (default); the shapes' rank follows from the nuclear
-    norm."""
+    norm.  ``gauge_rounds``: rounds of the Procrustean gauge (``procrustean_gauge``: each
+    frame's rotation relative to the robust mean shape goes into its camera) followed by the
+    shapes for the new cameras; 0 keeps the metric projection's cameras."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     if rank < 0:
         raise ValueError(f'rank: expected >= 0 (0: automatic), got {rank}')
     if lam < 0:
         raise ValueError(f'lam: expected >= 0, got {lam}')
+    if gauge_rounds < 0:
+        raise ValueError(f'gauge_rounds: expected >= 0, got {gauge_rounds}')
     Wc, t = _centre(W, V)
     R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
         averaged_rotations(Wc, V, trace_weight=trace_weight)
     X = impute_low_rank(Wc, V, 12) if (V < 0.5).any() else Wc
     F, P = V.shape
     init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, P)     # hidden tracks start imputed
-    S, it, conv = bmm_shapes(Wc, V, R2, lam * max(noise_level(X), 1e-4), iterations, init=init)
+    lam_abs = lam * max(noise_level(X), 1e-4)
+    S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, iterations, init=init)
     r = exact_rank(X) if (V >= 0.5).all() else min(X.shape)   # (imputation lowers the rank)
     if r <= 3 * max(AUTO_RANKS) and r < min(X.shape[0], X.shape[1] - 1):
         # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
         S = depth_em(X, R2, S, max(1, -(-r // 3)))
+    else:
+        R2, S = _gauge_rounds(Wc, V, R2, S, lam_abs, iterations, gauge_rounds)
     return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0)
 
 
