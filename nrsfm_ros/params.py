@@ -124,7 +124,7 @@ class ReconstructorParams(Params):
 class RegistrarParams(Params):
     method: str = rule('icp', _one_of('icp', 'icp-point-to-point', 'icp-point-to-plane',
                                       'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ecpd-rigid',
-                                      'ecpd-nonrigid', 'ga', 'bhrga'),
+                                      'ecpd-nonrigid', 'ga', 'bhrga', 'nrga'),
                        'registration method')
     max_iterations: int = rule(30, _at_least(1), 'iteration cap (ICP and CPD iterations; '
                                'GA dynamics steps, which needs ~300; BH-RGA L-BFGS '
@@ -136,7 +136,8 @@ class RegistrarParams(Params):
                         'levels (4, 2, 1 x voxel; centroids average the noise; 0: off)')
     w: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
                     'cpd: weight of the uniform outlier component')
-    beta: float = rule(2.0, _positive, 'cpd-nonrigid: kernel width (units of the RMS radius)')
+    beta: float = rule(2.0, _positive, 'cpd-nonrigid, ecpd-nonrigid, nrga: kernel width of '
+                       'the displacement field (units of the RMS radius)')
     lam: float = rule(2.0, _positive, 'cpd-nonrigid: smoothness of the displacement field')
     prior_matches: int = rule(0, _non_negative,
                               'ecpd-*, ga, bhrga: prior correspondences taken from track_id '

@@ -306,6 +306,8 @@ class RegistrarProcessor(Processor):
             kw = dict(max_iterations=p.max_iterations, max_points=p.max_points or 10 ** 9)
         elif p.method == 'bhrga':
             kw = dict(iterations=p.max_iterations)
+        elif p.method == 'nrga':
+            kw = dict(max_points=p.max_points or 10 ** 9, beta=p.beta)
         else:
             kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
                       max_points=p.max_points, target_tree=self._tree, voxel=p.voxel)

@@ -215,3 +215,22 @@ def test_voxel_downsample_and_coarse_to_fine_icp():
         assert vox.correspondences.max() < len(X) and vox.fitness > 0.9
     with pytest.raises(ValueError, match='voxel=-1'):
         register(src, X, method='icp', voxel=-1.0)
+
+
+def test_nrga_undoes_a_smooth_warp_and_validates():
+    rng = np.random.default_rng(2)
+    X = surface(2000)
+    C = X[rng.choice(2000, 6, replace=False)]
+    g = np.exp(-((X[:, None] - C[None]) ** 2).sum(-1) / (2 * 0.4 ** 2))
+    warped = X + 0.15 * g @ rng.normal(size=(6, 3))
+    start = np.sqrt(((warped - X) ** 2).sum(1).mean())
+    res = register(X, warped[rng.permutation(2000)], method='nrga')
+    end = np.sqrt(((res.aligned - warped) ** 2).sum(1).mean())
+    assert end < 0.2 * start and res.method == 'nrga' and res.fitness > 0.9
+    assert np.allclose(res.displacement, res.aligned - X)
+    sub = register(X, warped, method='nrga', max_points=500)   # field extended to all points
+    assert np.sqrt(((sub.aligned - warped) ** 2).sum(1).mean()) < 0.5 * start
+    with pytest.raises(ValueError, match='damping=1.0'):
+        register(X, warped, method='nrga', damping=1.0)
+    with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['w'\]"):
+        register(X, warped, method='nrga', w=0.1)

@@ -206,9 +206,12 @@ def test_registrar_processor_cpd_methods():
     def cloud(P, stamp):
         P = P.astype(np.float32)
         return pc2.to_msg({'x': P[:, 0], 'y': P[:, 1], 'z': P[:, 2]}, fac, stamp, 'cam')
-    for method in ('cpd-rigid', 'cpd-nonrigid', 'ga'):
+    bent = X + 0.1 * np.exp(-(X[:, :1] ** 2 + X[:, 1:2] ** 2)) * [0, 0, 1]
+    for method in ('cpd-rigid', 'cpd-nonrigid', 'ga', 'nrga'):
         proc = RegistrarProcessor(fac, RegistrarParams(method=method, try_reflection=False,
                                                        w=0.0, max_iterations=300))
+        if method == 'nrga':    # no rigid stage: a smooth bend without the large rotation
+            src = bent
         proc.handle('reference', cloud(X, 0))
         out = dict((topic, msg) for topic, _, msg in proc.handle('points', cloud(src, 1)))
         aligned = pc2.read_xyz(out['registration/aligned'])

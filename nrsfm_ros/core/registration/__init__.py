@@ -1,7 +1,7 @@
 """Point set registration by method name: ICP (point-to-point, point-to-plane), Coherent Point
 Drift (rigid, affine, non-rigid), ECPD (CPD with prior correspondences), the rigid
-gravitational approach (GA) and its Barnes-Hut energy-minimising form (BH-RGA).  One result
-type, ``RegistrationResult``."""
+gravitational approach (GA), its Barnes-Hut energy-minimising form (BH-RGA) and the non-rigid
+gravitational approach (NRGA).  One result type, ``RegistrationResult``."""
 from __future__ import annotations
 
 from typing import Any
@@ -12,10 +12,11 @@ from .bhrga import bhrga
 from .cpd import cpd
 from .gravitational import ga
 from .icp import ICP_METHODS, RegistrationResult, icp
+from .nrga import nrga
 
 CPD_METHODS = {'cpd-rigid': 'rigid', 'cpd-affine': 'affine', 'cpd-nonrigid': 'nonrigid',
                'ecpd-rigid': 'rigid', 'ecpd-nonrigid': 'nonrigid'}
-METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga', 'bhrga'])
+METHODS = sorted([*ICP_METHODS, *CPD_METHODS, 'ga', 'bhrga', 'nrga'])
 # the parameters each family understands (the registrar node passes its own set)
 ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'init', 'trim',
               'max_points', 'target_tree', 'voxel'}
@@ -26,6 +27,8 @@ GA_PARAMS = {'max_iterations', 'tolerance', 'eps', 'dt', 'damping', 'max_points'
              'prior_mass', 'seed', 'polish_trim'}
 BHRGA_PARAMS = {'eps_start', 'eps_end', 'stages', 'theta', 'max_particles', 'iterations',
                 'priors', 'prior_mass', 'polish_trim', 'polish_points', 'seed'}
+NRGA_PARAMS = {'k', 'iterations', 'dt', 'damping', 'beta', 'lam', 'eps_start', 'eps_end',
+               'max_points', 'landmarks', 'seed'}
 
 
 def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **params: Any
@@ -54,8 +57,13 @@ def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **para
         if unknown:
             raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
         return bhrga(source, target, **params)
+    if method == 'nrga':
+        unknown = set(params) - NRGA_PARAMS
+        if unknown:
+            raise ValueError(f'{method}: unknown parameter(s) {sorted(unknown)}')
+        return nrga(source, target, **params)
     raise ValueError(f'method={method!r}: expected one of {METHODS}')
 
 
 __all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'bhrga', 'cpd', 'ga',
-           'icp', 'register']
+           'icp', 'nrga', 'register']
