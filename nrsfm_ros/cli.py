@@ -111,7 +111,8 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument('tracks')
     rc.add_argument('--method', default='bmm',
                     help='rigid, lowrank, bmm (default: Dai-Li-He cameras + nuclear-norm '
-                    'shapes), smsr (DCT-smoothed tracks) or amp (metric projections)')
+                    'shapes), smsr (DCT-smoothed tracks), amp (metric projections) or cdf '
+                    '(coherent depth fields: occluded tracks filled from visible neighbours)')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6)')
@@ -423,9 +424,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(f'{path}: no array named W (keys: {d.files})')
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
-    kw = {} if args.method == 'rigid' else \
-        {'rank': args.rank if args.rank is not None else
-         (3 if args.method in ('lowrank', 'amp') else 0)}
+    if args.method in ('rigid', 'cdf'):
+        if args.rank is not None:
+            raise CliError(f'--rank does not apply to --method {args.method}')
+        kw = {}
+    else:
+        kw = {'rank': args.rank if args.rank is not None else
+              (3 if args.method in ('lowrank', 'amp') else 0)}
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '

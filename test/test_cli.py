@@ -98,6 +98,16 @@ def test_reconstruct_default_bmm_and_register_cpd(tmp_path, capsys):
     assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--out',
                  str(tmp_path / 's.npz')]) == 0
     assert e3d_frobenius(np.load(tmp_path / 's.npz')['S'], S, 'global') < 1e-6
+    V = np.ones((30, 60))
+    V[5:9, :10] = 0
+    np.savez(tmp_path / 'occluded.npz', W=W, V=V)
+    assert main(['reconstruct', str(tmp_path / 'occluded.npz'), '--method', 'cdf', '--out',
+                 str(tmp_path / 'c.npz')]) == 0
+    assert np.load(tmp_path / 'c.npz')['S'].shape == S.shape
+    capsys.readouterr()
+    assert main(['reconstruct', str(tmp_path / 'occluded.npz'), '--method', 'cdf', '--rank',
+                 '2', '--out', str(tmp_path / 'c.npz')]) != 0
+    assert '--rank does not apply' in capsys.readouterr().err
     X = S[0]
     write_ply(tmp_path / 'a.ply', X)
     np.save(tmp_path / 'b.npy', X + [0.1, 0, 0])

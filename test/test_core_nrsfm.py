@@ -193,3 +193,46 @@ def test_procrustean_gauge_moves_frame_rotations_into_the_cameras():
     assert core_err < 1e-6
     np.testing.assert_allclose(np.einsum('fij,fik->fjk', R2, R2), np.eye(3)[None].repeat(F, 0),
                                atol=1e-12)
+
+
+def _dense_sheet(F: int = 30, n: int = 25):
+    """Orthographic tracks (pixels) of a deforming rank-3 sheet under a smooth 2-axis camera
+    motion, the camera-frame shapes, and the sheet parameter u of every point."""
+    from scipy.spatial.transform import Rotation
+    u, v = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
+    u, v = u.ravel(), v.ravel()
+    base = np.stack([u, v, 0.2 * np.sin(2 * u)], 1)
+    m1 = np.stack([0 * u, 0 * u, np.exp(-(u ** 2 + v ** 2))], 1)
+    m2 = np.stack([0.1 * v, 0 * u, u * v], 1)
+    t = np.arange(F) / F * 2 * np.pi
+    Sw = base[None] + 0.3 * np.sin(t)[:, None, None] * m1 \
+        + 0.3 * np.cos(1.3 * t)[:, None, None] * m2
+    R = Rotation.from_euler('yx', np.stack([0.5 * np.sin(t), 0.35 * np.sin(0.7 * t + 1)],
+                                           1)).as_matrix()
+    S = np.einsum('fij,fpj->fpi', R, Sw)
+    return (100 * S[:, :, :2]).transpose(0, 2, 1).reshape(2 * F, -1), S, u
+
+
+def test_cdf_fills_an_occluded_block_from_visible_neighbours():
+    from nrsfm_ros.core.metrics import e3d_frobenius
+    from nrsfm_ros.core.nrsfm.cdf import coherent_fill
+    from nrsfm_ros.core.nrsfm.factorization import impute_low_rank
+    W, S, u = _dense_sheet()
+    F, P = S.shape[:2]
+    Wn = W + np.random.default_rng(1).normal(0, 0.5, W.shape)
+    V = np.ones((F, P))
+    V[8:20][:, u < -0.4] = 0                       # 30% of the sheet hidden for 12 frames
+    hidden = np.repeat(V < 0.5, 2, axis=0)
+    fill = np.sqrt(((coherent_fill(Wn, V) - W)[hidden] ** 2).mean())
+    hard = np.sqrt(((impute_low_rank(Wn, V, 12) - W)[hidden] ** 2).mean())
+    assert fill < 6.0 and fill < 0.2 * hard        # pixels, on a ~200 px sheet
+    occluded = reconstruct(Wn, V, method='cdf')
+    full = reconstruct(Wn, np.ones((F, P)), method='bmm')
+    e_cdf = e3d_frobenius(occluded.S, S, 'frame', scale=True)
+    e_bmm = e3d_frobenius(reconstruct(Wn, V, method='bmm').S, S, 'frame', scale=True)
+    assert e_cdf < 0.7 * e_bmm and e_cdf < 1.2 * e3d_frobenius(full.S, S, 'frame', scale=True)
+    assert occluded.method == 'cdf' and occluded.S.shape == S.shape
+    same = reconstruct(Wn, np.ones((F, P)), method='cdf')      # nothing hidden: exactly bmm
+    np.testing.assert_allclose(same.S, full.S, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match='beta: expected > 0'):
+        reconstruct(Wn, V, method='cdf', beta=0.0)

@@ -8,6 +8,7 @@ import numpy as np
 
 from .amp import amp
 from .bmm import bmm, smsr
+from .cdf import cdf
 from .factorization import low_rank, rigid
 from .online import OnlineNRSfM
 from .result import NRSfMResult, check_tracks
@@ -19,6 +20,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'bmm': bmm,
     'smsr': smsr,
     'amp': amp,
+    'cdf': cdf,
 }
 
 
