@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from .bmm import bmm
+from .bmm import bmm, row_space
 from .factorization import _centre, complete_rotations
 from .result import NRSfMResult, check_tracks
 
@@ -45,6 +45,14 @@ def amp(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: i
     base = init if init is not None else bmm(W, V)
     R2 = base.R[:, :2].copy()
     S_obj = np.einsum('fji,fpj->fip', base.R, base.S)              # (F, 3, P)
+    Wfull, Vfull, basis = Wc, V, None
+    if (V >= 0.5).all() and P > 2 * F:
+        # all tracks visible: every step is linear in the columns of W with equal weights, so
+        # the iterations run on the row space of W (r <= 2F "points"; see bmm.row_space)
+        Wc, basis = row_space(Wc)
+        S_obj = S_obj @ basis.T
+        P = Wc.shape[1]
+        V = np.ones((F, P))
     # initial basis and coefficients from the rank-K approximation of S#
     U, s, Vt = np.linalg.svd(S_obj.reshape(F, 3 * P), full_matrices=False)
     c = U[:, :rank] * s[:rank]                                       # (F, K)
@@ -54,13 +62,18 @@ def amp(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: i
     for it in range(1, iterations + 1):
         # (3) basis given cameras and coefficients: per point, (3K) weighted least squares
         Rk = np.einsum('fk,fij->fikj', c, R2).reshape(F, 2, 3 * rank)
-        A = np.einsum('fp,fia,fib->pab', V, Rk, Rk) + 1e-9 * np.eye(3 * rank)
+        A = np.einsum('fp,fia,fib->pab', V, Rk, Rk)
+        # a relative ridge keeps the solves regular when the data's rank is below K
+        A += (1e-9 * np.trace(A, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None, None] \
+            * np.eye(3 * rank)
         b = np.einsum('fp,fia,fip->pa', V, Rk, Wf)
         B = np.linalg.solve(A, b[..., None])[..., 0].reshape(P, rank, 3).transpose(1, 2, 0)
         # (1) motion given the basis: M_f = W_f B_f^+ over the visible points, all frames
         Bs = B.transpose(1, 0, 2).reshape(3 * rank, P)               # (3K, P) rows (i, k)
         BV = Bs[None] * V[:, None, :]                                 # (F, 3K, P)
-        G = BV @ Bs.T + 1e-9 * np.eye(3 * rank)
+        G = BV @ Bs.T
+        G += (1e-9 * np.trace(G, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None, None] \
+            * np.eye(3 * rank)
         M = np.linalg.solve(G, (BV @ Wf.transpose(0, 2, 1))).transpose(0, 2, 1)   # (F, 2, 3K)
         # (2) metric projection, batched over frames
         R2, c = project_blocks(M.reshape(F, 2, 3, rank), R2)
@@ -71,9 +84,12 @@ def amp(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: i
             break
         prev = err
     S_obj = np.einsum('fk,kjp->fjp', c, B)
+    if basis is not None:
+        S_obj = S_obj @ basis
     R = complete_rotations(R2)
     S_cam = np.einsum('fij,fjp->fpi', R, S_obj)
-    d = np.linalg.norm(Wf - R2 @ S_obj, axis=1)
+    d = np.linalg.norm(Wfull.reshape(F, 2, -1) - R2 @ S_obj, axis=1)
     return NRSfMResult(S=S_cam, R=R, scale=np.ones(F), t=t, method='amp', rank=rank,
-                       residual_px=float((d * V).sum() / max(V.sum(), 1e-12)), iterations=it,
+                       residual_px=float((d * Vfull).sum() / max(Vfull.sum(), 1e-12)),
+                       iterations=it,
                        converged=converged, seconds=time.perf_counter() - t0)

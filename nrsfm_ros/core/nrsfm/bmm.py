@@ -243,26 +243,27 @@ def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: 
     return A + n[:, :, None] * d[:, None, :]
 
 
-def procrustean_gauge(S: np.ndarray, R: np.ndarray, reweight: int = 5
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def procrustean_gauge(S: np.ndarray, R: np.ndarray, reweight: int = 5,
+                      basis: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fix the per-frame rotation gauge: rotate every object-frame shape S_f (F, 3, P) onto
     the mean shape by weighted orthogonal Procrustes and move the rotation into the camera
     (R_f Q_f, so R_f S_f is unchanged).  The weights, 1 / (variance of the point about the
     mean + the median variance), re-estimated ``reweight`` times, make the alignment follow
     the least-deforming points (a body's trunk rather than its arms): the deformations keep no
-    rotation that the cameras could explain, the Procrustean assumption of PND-style models."""
-    P = S.shape[2]
-    w = np.ones(P)
-    A, Q = S, np.broadcast_to(np.eye(3), (S.shape[0], 3, 3))
+    rotation that the cameras could explain, the Procrustean assumption of PND-style models.
+    ``basis`` (r, P): S is given in reduced coordinates (the points are S @ basis)."""
+    Sp = S if basis is None else S @ basis
+    w = np.ones(Sp.shape[2])
+    Q = np.broadcast_to(np.eye(3), (S.shape[0], 3, 3))
     for _ in range(max(1, reweight)):
-        M = np.einsum('fip,jp->fij', S * w, S.mean(0))
+        M = np.einsum('fip,jp->fij', Sp * w, Sp.mean(0))
         U, _, Vt = np.linalg.svd(M)
         U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
         Q = U @ Vt                                           # S_f ~= Q_f mean
-        A = np.einsum('fji,fjp->fip', Q, S)
+        A = np.einsum('fji,fjp->fip', Q, Sp)
         var = ((A - A.mean(0)) ** 2).sum(1).mean(0)
         w = 1.0 / (var + max(float(np.median(var)), 1e-300))
-    return A, R @ Q
+    return np.einsum('fji,fjp->fip', Q, S), R @ Q
 
 
 def exact_rank(Wc: np.ndarray, rel: float = 1e-11) -> int:
@@ -295,13 +296,51 @@ def noise_level(Wc: np.ndarray, rank: int = 12) -> float:
 
 
 def _gauge_rounds(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, S: np.ndarray, lam: float,
-                  iterations: int, rounds: int) -> tuple[np.ndarray, np.ndarray]:
+                  iterations: int, rounds: int, basis: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """``rounds`` x (Procrustean gauge, then the nuclear-norm shapes for the new cameras)."""
     for _ in range(rounds):
-        S, R = procrustean_gauge(S, complete_rotations(R2))
+        S, R = procrustean_gauge(S, complete_rotations(R2), basis=basis)
         R2 = R[:, :2]
         S = bmm_shapes(Wc, V, R2, lam, iterations, init=S)[0]
     return R2, S
+
+
+def row_space(Wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Wc (2F, P) = Wr @ B with B (r, P) orthonormal rows spanning the row space of Wc (r <=
+    2F) and Wr = Wc B^T (2F, r).
+
+    With every track visible, the nuclear-norm shapes lie in that row space (per coordinate):
+    the data term cannot see components outside it and removing them does not increase the
+    nuclear norm (a right projection).  So cameras and shapes are solved for r "points" and
+    mapped back by B -- the cost becomes independent of P after one thin SVD."""
+    U, s, B = np.linalg.svd(Wc, full_matrices=False)
+    return U * s, B
+
+
+def _motion_and_shapes(Wc: np.ndarray, X: np.ndarray, V: np.ndarray, rank: int, lam: float,
+                       iterations: int, trace_weight: float, gauge_rounds: int
+                       ) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Cameras R2 and object-frame shapes S (F, 3, P) for centred tracks Wc (2F, P) with
+    visibility V; X is Wc with the hidden entries imputed (the shapes' starting point)."""
+    F, P = V.shape
+    full = bool((V >= 0.5).all())
+    basis = None
+    if full and P > 2 * F:
+        Wc, basis = row_space(Wc)
+        X, V = Wc, np.ones((F, Wc.shape[1]))
+    R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
+        averaged_rotations(Wc, V, trace_weight=trace_weight)
+    init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, -1)     # hidden tracks start imputed
+    lam_abs = lam * max(noise_level(X), 1e-4)
+    S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, iterations, init=init)
+    r = exact_rank(X) if full else min(X.shape)   # (imputation lowers the rank)
+    if r <= 3 * max(AUTO_RANKS) and r < min(2 * F, P - 1):
+        # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
+        S = depth_em(X, R2, S, max(1, -(-r // 3)))
+    else:
+        R2, S = _gauge_rounds(Wc, V, R2, S, lam_abs, iterations, gauge_rounds, basis)
+    return R2, (S if basis is None else S @ basis), it, conv
 
 
 def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 4.0,
@@ -322,19 +361,9 @@ def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 
     if gauge_rounds < 0:
         raise ValueError(f'gauge_rounds: expected >= 0, got {gauge_rounds}')
     Wc, t = _centre(W, V)
-    R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
-        averaged_rotations(Wc, V, trace_weight=trace_weight)
     X = impute_low_rank(Wc, V, 12) if (V < 0.5).any() else Wc
-    F, P = V.shape
-    init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, P)     # hidden tracks start imputed
-    lam_abs = lam * max(noise_level(X), 1e-4)
-    S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, iterations, init=init)
-    r = exact_rank(X) if (V >= 0.5).all() else min(X.shape)   # (imputation lowers the rank)
-    if r <= 3 * max(AUTO_RANKS) and r < min(X.shape[0], X.shape[1] - 1):
-        # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
-        S = depth_em(X, R2, S, max(1, -(-r // 3)))
-    else:
-        R2, S = _gauge_rounds(Wc, V, R2, S, lam_abs, iterations, gauge_rounds)
+    R2, S, it, conv = _motion_and_shapes(Wc, X, V, rank, lam, iterations, trace_weight,
+                                         gauge_rounds)
     return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0)
 
 
@@ -364,11 +393,6 @@ def smsr(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float =
     X = impute_low_rank(Wc, V, 3 * (rank or 4)) if (V < 0.5).any() else Wc
     d = max(2, int(round(dct_fraction * F)))
     Ws = dct_smooth(X, d)
-    ones = np.ones_like(V)
-    R2 = dai_rotations(Ws, ones, rank, trace_weight) if rank else \
-        averaged_rotations(Ws, ones, trace_weight=trace_weight)
-    S, it, conv = bmm_shapes(Ws, ones, R2, lam * max(noise_level(X), 1e-4), iterations)
-    r = exact_rank(Ws) if (V >= 0.5).all() else min(Ws.shape)
-    if r <= 3 * max(AUTO_RANKS) and r < min(Ws.shape[0], Ws.shape[1] - 1):
-        S = depth_em(Ws, R2, S, max(1, -(-r // 3)))
+    R2, S, it, conv = _motion_and_shapes(Ws, Ws, np.ones_like(V), rank, lam, iterations,
+                                         trace_weight, 0)
     return _finish(Wc, V, R2, S, t, 'smsr', rank, it, conv, t0)
