@@ -112,10 +112,12 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument('--method', default='bmm',
                     help='rigid, lowrank, bmm (default: Dai-Li-He cameras + nuclear-norm '
                     'shapes), smsr (DCT-smoothed tracks), amp (metric projections) or cdf '
-                    '(coherent depth fields: occluded tracks filled from visible neighbours)')
+                    '(coherent depth fields: occluded tracks filled from visible neighbours) or '
+                    'hdsm (lifted high-dimensional model; --rank is its dimension D, default 9)')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
-                    'automatic, cameras averaged over K=2..6)')
+                    'automatic, cameras averaged over K=2..6); hdsm: lifted dimension D '
+                    '(default 9)')
     rc.add_argument('--out', required=True)
 
     rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
@@ -428,13 +430,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if args.rank is not None:
             raise CliError(f'--rank does not apply to --method {args.method}')
         kw = {}
+    elif args.method == 'hdsm':
+        kw = {'dim': args.rank if args.rank is not None else 9}
     else:
         kw = {'rank': args.rank if args.rank is not None else
               (3 if args.method in ('lowrank', 'amp') else 0)}
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
+    extra = f', compression {res.compression:.1f}x' if res.compression != 1.0 else ''
     print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '
-          f'{res.residual_px:.3g} px, {res.seconds:.2f} s)')
+          f'{res.residual_px:.3g} px{extra}, {res.seconds:.2f} s)')
     return 0
 
 

@@ -108,6 +108,9 @@ def test_reconstruct_default_bmm_and_register_cpd(tmp_path, capsys):
     assert main(['reconstruct', str(tmp_path / 'occluded.npz'), '--method', 'cdf', '--rank',
                  '2', '--out', str(tmp_path / 'c.npz')]) != 0
     assert '--rank does not apply' in capsys.readouterr().err
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'hdsm', '--rank', '4',
+                 '--out', str(tmp_path / 'h.npz')]) == 0
+    assert 'hdsm, rank 4' in capsys.readouterr().out and (tmp_path / 'h.npz').exists()
     X = S[0]
     write_ply(tmp_path / 'a.ply', X)
     np.save(tmp_path / 'b.npy', X + [0.1, 0, 0])

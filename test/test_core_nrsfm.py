@@ -252,3 +252,26 @@ def test_row_space_and_dense_tracks():
     np.testing.assert_allclose(Wr @ B, d['W'] - d['W'].mean(1, keepdims=True), atol=1e-9)
     with pytest.raises(ValueError, match="projection='pinhole'"):
         dense_tracks('face', projection='pinhole')
+
+
+def test_hdsm_lift_is_exact_for_rigid_and_monotone_in_the_dimension():
+    from nrsfm_ros.core.nrsfm.hdsm import compression_ratio, lift
+    W, S, R = low_rank_sequence(K=1, F=20, P=50)
+    S_obj = np.einsum('fji,fpj->fip', R, S)
+    Phi, S_hat = lift(S_obj, 3)
+    np.testing.assert_allclose(np.einsum('fid,dp->fip', Phi, S_hat), S_obj, atol=1e-8)
+    W, S, R = low_rank_sequence(K=3, F=40, P=60)
+    S_obj = np.einsum('fji,fpj->fip', R, S)
+    errs = []
+    for D in (3, 5, 7, 9):
+        Phi, S_hat = lift(S_obj, D, iterations=60)
+        np.testing.assert_allclose(Phi @ Phi.transpose(0, 2, 1),
+                                   np.broadcast_to(np.eye(3), (40, 3, 3)), atol=1e-9)
+        errs.append(np.linalg.norm(np.einsum('fid,dp->fip', Phi, S_hat) - S_obj))
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(errs, errs[1:])) and errs[-1] < 0.2 * errs[0]
+    assert compression_ratio(40, 60, 9) == pytest.approx(3 * 40 * 60 / (9 * 60 + 27 * 40))
+    res = reconstruct(W, method='hdsm', dim=6)
+    assert res.method == 'hdsm' and res.rank == 6 and res.compression > 1
+    assert res.S.shape == S.shape
+    with pytest.raises(ValueError, match='dim=2'):
+        reconstruct(W, method='hdsm', dim=2)

@@ -9,6 +9,7 @@ import numpy as np
 from .amp import amp
 from .bmm import bmm, smsr
 from .cdf import cdf
+from .hdsm import hdsm
 from .factorization import low_rank, rigid
 from .online import OnlineNRSfM
 from .result import NRSfMResult, check_tracks
@@ -21,6 +22,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'smsr': smsr,
     'amp': amp,
     'cdf': cdf,
+    'hdsm': hdsm,
 }
 
 

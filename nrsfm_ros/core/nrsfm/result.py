@@ -15,6 +15,8 @@ class NRSfMResult:
     R: (F, 3, 3) rotations object -> camera (rows 0, 1 are the orthographic camera).
     scale: (F,) weak-perspective scale per frame; t: (F, 2) image translation per frame, so
        W_f ~= scale_f * S_f[:, :2].T + t_f.
+    compression: numbers of the full sequence (3FP) over those the method's model stores
+       (``hdsm``); 1.0 for methods that store every shape.
     """
 
     S: np.ndarray
@@ -27,6 +29,7 @@ class NRSfMResult:
     iterations: int
     converged: bool
     seconds: float
+    compression: float = 1.0
 
 
 def check_tracks(W: np.ndarray, V: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
