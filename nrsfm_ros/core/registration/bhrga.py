@@ -34,7 +34,8 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .icp import RegistrationResult, check_points, kabsch
+from .icp import (RegistrationResult, check_points, denormalise, icp, kabsch, normalise_pair,
+                  rigid_result)
 
 
 @dataclass(frozen=True)
@@ -200,10 +201,7 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
                          f'{max_particles}: expected >= 1, >= 1, >= 8')
     if polish_trim and not 0.1 <= polish_trim <= 1:
         raise ValueError(f'polish_trim={polish_trim}: expected 0 or in [0.1, 1]')
-    cx, cy = X0.mean(0), Y0.mean(0)
-    sc = max(float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())),
-             float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())), 1e-12)
-    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sc
+    Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     prior_y = prior_x = None
     if priors is not None and len(priors):
         priors = np.asarray(priors)
@@ -237,28 +235,14 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
         dT = _stage(Q, Ls.mass, pi, xc, xm, float(eps), pq, prior_x,
                     prior_mass / len(Yn), iterations)
         T = dT @ T
-    R = T[:3, :3]
-    Tout = np.eye(4)
-    Tout[:3, :3] = R
-    Tout[:3, 3] = cx + sc * T[:3, 3] - R @ cy
+    Tout = denormalise(T, cx, cy, sc)
     rng = np.random.default_rng(seed)
     nx = 20 * polish_points          # a dense target subsample: ICP's pairs need close neighbours
     xi = rng.choice(len(X0), nx, replace=False) if len(X0) > nx else np.arange(len(X0))
     tree = cKDTree(X0[xi])
     if polish_trim > 0:
-        from .icp import icp
         yi = rng.choice(len(Y0), polish_points, replace=False) if len(Y0) > polish_points \
             else np.arange(len(Y0))
         Tout = icp(Y0[yi], X0[xi], init=Tout, trim=polish_trim, max_iterations=30,
                    max_points=0, target_tree=tree).T_target_source
-        R = Tout[:3, :3]
-    aligned = Y0 @ R.T + Tout[:3, 3]
-    dist, corr = tree.query(aligned, workers=-1)
-    thr = 3 * np.median(dist)
-    ok = dist <= max(thr, 1e-12)
-    return RegistrationResult(T_target_source=Tout, aligned=aligned, displacement=aligned - Y0,
-                              correspondences=np.where(ok, xi[corr], -1),
-                              iterations=stages, converged=True,
-                              residual=float(np.sqrt(np.mean(dist[ok] ** 2))),
-                              fitness=float(ok.mean()), seconds=time.perf_counter() - t0,
-                              method='bhrga')
+    return rigid_result(Y0, Tout, tree, xi, 'bhrga', stages, True, t0)

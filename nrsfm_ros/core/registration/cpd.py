@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from .icp import RegistrationResult, check_points
+from .icp import RegistrationResult, check_points, normalise_pair
 
 
 def _sigma2(X: np.ndarray, Y: np.ndarray) -> float:
@@ -165,14 +165,12 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
             raise ValueError('priors: an index is out of range of source/target')
         if alpha <= 0:
             raise ValueError(f'alpha={alpha}: expected > 0')
-    # normalisation (undone at the end)
-    # both sets centred and scaled by one factor (the larger RMS radius)
+    # normalisation (undone at the end): one scale for both sets
     cx, cy, sc = np.zeros(3), np.zeros(3), 1.0
     if normalise:
-        cx, cy = X0.mean(0), Y0.mean(0)
-        sc = max(float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())),
-                 float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())), 1e-12)
-    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sc
+        Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
+    else:
+        Xn, Yn = X0, Y0
 
     def subsample(n: int, keep: np.ndarray) -> np.ndarray:
         if n <= max_points:

@@ -16,7 +16,8 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .icp import RegistrationResult, check_points, kabsch
+from .icp import (RegistrationResult, check_points, denormalise, icp, kabsch, normalise_pair,
+                  rigid_result)
 
 
 def forces(Y: np.ndarray, X: np.ndarray, m: np.ndarray, eps: float, chunk: int = 1024
@@ -54,10 +55,7 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
     if not 0 <= damping < 1:
         raise ValueError(f'damping={damping}: expected 0 <= damping < 1')
     rng = np.random.default_rng(seed)
-    cx, cy = X0.mean(0), Y0.mean(0)
-    sc = max(float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())),
-             float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())), 1e-12)
-    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sc
+    Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     xi = rng.choice(len(Xn), max_points, replace=False) if len(Xn) > max_points else \
         np.arange(len(Xn))
     yi = rng.choice(len(Yn), max_points, replace=False) if len(Yn) > max_points else \
@@ -97,23 +95,9 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
             converged = True
             break
     # back to input units: y_n = (y - cy) / sc, x = sc * (R y_n + t) + cx
-    R = T[:3, :3]
-    Tout = np.eye(4)
-    Tout[:3, :3] = R
-    Tout[:3, 3] = cx + sc * T[:3, 3] - R @ cy
+    Tout = denormalise(T, cx, cy, sc)
     tree = cKDTree(X0)
     if polish_trim > 0:
-        from .icp import icp
         Tout = icp(Y0, X0, init=Tout, trim=polish_trim, max_iterations=30,
                    target_tree=tree).T_target_source
-        R = Tout[:3, :3]
-    aligned = Y0 @ R.T + Tout[:3, 3]
-    dist, corr = tree.query(aligned, workers=-1)
-    thr = 3 * np.median(dist)
-    ok = dist <= max(thr, 1e-12)
-    return RegistrationResult(T_target_source=Tout, aligned=aligned, displacement=aligned - Y0,
-                              correspondences=np.where(ok, corr, -1), iterations=it,
-                              converged=converged,
-                              residual=float(np.sqrt(np.mean(dist[ok] ** 2))),
-                              fitness=float(ok.mean()), seconds=time.perf_counter() - t0,
-                              method='ga')
+    return rigid_result(Y0, Tout, tree, None, 'ga', it, converged, t0)

@@ -38,6 +38,42 @@ def check_points(name: str, X: np.ndarray, min_points: int = 3) -> np.ndarray:
     return X
 
 
+def normalise_pair(X: np.ndarray, Y: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Target X and source Y each centred on its centroid and both scaled by one factor (the
+    larger RMS radius): (Xn, Yn, cx, cy, sc)."""
+    cx, cy = X.mean(0), Y.mean(0)
+    sc = max(float(np.sqrt(((X - cx) ** 2).sum(1).mean())),
+             float(np.sqrt(((Y - cy) ** 2).sum(1).mean())), 1e-12)
+    return (X - cx) / sc, (Y - cy) / sc, cx, cy, sc
+
+
+def denormalise(T: np.ndarray, cx: np.ndarray, cy: np.ndarray, sc: float) -> np.ndarray:
+    """T between normalised sets (y_n = (y - cy) / sc, x_n = (x - cx) / sc) in input units."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3]
+    out[:3, 3] = cx + sc * T[:3, 3] - T[:3, :3] @ cy
+    return out
+
+
+def rigid_result(source: np.ndarray, T: np.ndarray, tree: cKDTree, index: np.ndarray | None,
+                 method: str, iterations: int, converged: bool, t0: float
+                 ) -> RegistrationResult:
+    """The result of a rigid T: correspondences to the target points of ``tree`` (``index``
+    maps them to target indices) within 3x the median distance, their RMSE and fraction."""
+    aligned = source @ T[:3, :3].T + T[:3, 3]
+    dist, corr = tree.query(aligned, workers=-1)
+    ok = dist <= max(3 * float(np.median(dist)), 1e-12)
+    if index is not None:
+        corr = index[corr]
+    return RegistrationResult(T_target_source=T, aligned=aligned, displacement=aligned - source,
+                              correspondences=np.where(ok, corr, -1), iterations=iterations,
+                              converged=converged,
+                              residual=float(np.sqrt(np.mean(dist[ok] ** 2))),
+                              fitness=float(ok.mean()), seconds=time.perf_counter() - t0,
+                              method=method)
+
+
 def kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """4x4 rigid T minimising sum w ||T A - B||^2 (rows are points)."""
     w = np.ones(A.shape[0]) if w is None else w

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .cpd import Nystrom
-from .icp import RegistrationResult, check_points
+from .icp import RegistrationResult, check_points, normalise_pair
 
 
 def nrga(source: np.ndarray, target: np.ndarray, k: int = 8, iterations: int = 150,
@@ -45,10 +45,7 @@ def nrga(source: np.ndarray, target: np.ndarray, k: int = 8, iterations: int = 1
         raise ValueError(f'k={k}, iterations={iterations}, max_points={max_points}, '
                          f'landmarks={landmarks}: expected >= 1, >= 1, >= 10, >= 1')
     rng = np.random.default_rng(seed)
-    cx, cy = X0.mean(0), Y0.mean(0)
-    sc = max(float(np.sqrt(((X0 - cx) ** 2).sum(1).mean())),
-             float(np.sqrt(((Y0 - cy) ** 2).sum(1).mean())), 1e-12)
-    Xn, Yn = (X0 - cx) / sc, (Y0 - cy) / sc
+    Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     yi = rng.choice(len(Yn), max_points, replace=False) if len(Yn) > max_points \
         else np.arange(len(Yn))
     Y = Yn[yi]
