@@ -8,7 +8,8 @@ frames, the generator's two-axis camera path (40 degrees), orthographic or weak-
 projection (focal 2000 px at 4 m).  Conditions: clean; and 1 px Gaussian track noise with 30%
 of the tracks (the left part of the first frame) occluded for 20 frames.  Metric B per frame
 (`e3d_frobenius(..., 'frame', scale=True)`, camera frame; the scale is fitted because the
-reconstruction is in pixels).  A second table: seconds and peak traced memory against P.
+reconstruction is in pixels).  A second table: seconds and peak traced memory against P; a
+third: the reconstructor's online mode, milliseconds per frame after its first window.
 """
 from __future__ import annotations
 
@@ -80,6 +81,26 @@ def scaling() -> list[dict]:
     return rows
 
 
+def online_latency() -> list[dict]:
+    """Reconstructor ``mode: online``: ms per frame after the first window, against P."""
+    from nrsfm_ros.core.nrsfm import OnlineNRSfM
+    rows = []
+    for P in (1_000, 10_000, 30_000):
+        d = dense_tracks('face', 60, P)
+        window = 15
+        online = OnlineNRSfM(window=window)
+        ms = []
+        for f in range(60):
+            t = time.perf_counter()
+            online.push(d['W'][2 * f:2 * f + 2].T)
+            ms.append(1e3 * (time.perf_counter() - t))
+        after = np.array(ms[window + 1:])
+        rows.append({'table': 'online', 'P': P, 'window_ms': max(ms),
+                     'frame_ms_median': float(np.median(after)),
+                     'frame_ms_p95': float(np.percentile(after, 95))})
+    return rows
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -107,8 +128,15 @@ def main() -> int:
         cells = [next(f"{r['seconds']:.2f} ({r['peak_MB']:.0f})" for r in scale
                       if r['P'] == P and r['method'] == m) for m in FAST]
         print(f'| {P:,} | ' + ' | '.join(cells) + ' |')
+    online = online_latency()
+    print()
+    print('| P | first window (ms) | online frame, median (ms) | online frame, p95 (ms) |')
+    print('|---|---|---|---|')
+    for r in online:
+        print(f"| {r['P']:,} | {r['window_ms']:.0f} | {r['frame_ms_median']:.1f} | "
+              f"{r['frame_ms_p95']:.1f} |")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows + scale, indent=1))
+        Path(args.json).write_text(json.dumps(rows + scale + online, indent=1))
     return 0
 
 
