@@ -34,8 +34,8 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .icp import (RegistrationResult, check_points, denormalise, icp, kabsch, normalise_pair,
-                  rigid_result)
+from .icp import (RegistrationResult, check_points, check_priors, denormalise, icp, kabsch,
+                  normalise_pair, rigid_result)
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,6 @@ class CellTree:
         keys, inv = np.unique(morton(ijk, levels), return_inverse=True)
         mass = np.bincount(inv, m)
         com = np.stack([np.bincount(inv, m * X[:, k]) for k in range(3)], 1) / mass[:, None]
-        self.point_cell = inv                # leaf cell of every point
         # finest first; Morton order keeps each parent's children contiguous
         coms, masses, parents = [com], [mass], []
         for _ in range(levels):
@@ -183,7 +182,7 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
 
     ``eps_start`` -> ``eps_end``: softening annealed geometrically over ``stages`` (units of the
     normalised data, RMS radius 1); ``theta``: Barnes-Hut opening criterion (cell edge /
-    distance); ``max_particles``: cap on source cells per stage; ``iterations``: L-BFGS
+    distance); ``max_particles``: cap on the source cells (the particles); ``iterations``: L-BFGS
     iterations per stage; ``priors`` (K, 2) (source index, target index) matches, each pair
     weighing ``prior_mass`` ordinary source particles; ``polish_trim``: trimmed ICP polish (0 to
     skip) on ``polish_points`` source points against 20x as many target points."""
@@ -203,11 +202,8 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
         raise ValueError(f'polish_trim={polish_trim}: expected 0 or in [0.1, 1]')
     Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     prior_y = prior_x = None
-    if priors is not None and len(priors):
-        priors = np.asarray(priors)
-        if priors.ndim != 2 or priors.shape[1] != 2 or priors.min() < 0 \
-                or priors[:, 0].max() >= len(Y0) or priors[:, 1].max() >= len(X0):
-            raise ValueError('priors: expected (K, 2) in-range (source, target) index pairs')
+    priors = check_priors(priors, len(Y0), len(X0))
+    if priors is not None:
         prior_y, prior_x = Yn[priors[:, 0]], Xn[priors[:, 1]]
 
     def build(P: np.ndarray) -> CellTree:
@@ -220,14 +216,10 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
     T = np.eye(4)                                    # normalised source -> normalised target
     if prior_y is not None and len(prior_y) >= 3:    # the cues also give the starting pose
         T = kabsch(prior_y, prior_x)
-    epss = np.geomspace(eps_start, eps_end, stages)
-    for eps in epss:
-        # source particles: the finest source level with at most max_particles cells
-        ylev = 0
-        for lev, L in enumerate(yt.levels):
-            if len(L.mass) <= max_particles:
-                ylev = lev
-        Ls = yt.levels[ylev]
+    # source particles: the finest source level with at most max_particles cells
+    Ls = yt.levels[max([lev for lev, L in enumerate(yt.levels) if len(L.mass) <= max_particles],
+                       default=0)]
+    for eps in np.geomspace(eps_start, eps_end, stages):
         Q = Ls.com @ T[:3, :3].T + T[:3, 3]
         leaf = xt.level_for(0.5 * eps)
         pi, xc, xm = interaction_lists(xt, Q, theta, leaf)

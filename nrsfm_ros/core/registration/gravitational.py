@@ -16,8 +16,8 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .icp import (RegistrationResult, check_points, denormalise, icp, kabsch, normalise_pair,
-                  rigid_result)
+from .icp import (RegistrationResult, check_points, check_priors, denormalise, icp, kabsch,
+                  normalise_pair, rigid_result)
 
 
 def forces(Y: np.ndarray, X: np.ndarray, m: np.ndarray, eps: float, chunk: int = 1024
@@ -63,11 +63,8 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
     X, Y = Xn[xi], Yn[yi]
     m = np.full(len(X), 1.0 / len(X))
     pairs = None
-    if priors is not None and len(priors):
-        priors = np.asarray(priors)
-        if priors.ndim != 2 or priors.shape[1] != 2 or priors.min() < 0 \
-                or priors[:, 0].max() >= len(Y0) or priors[:, 1].max() >= len(X0):
-            raise ValueError('priors: expected (K, 2) in-range (source, target) index pairs')
+    priors = check_priors(priors, len(Y0), len(X0))
+    if priors is not None:
         pairs = (Yn[priors[:, 0]], Xn[priors[:, 1]])
     T = np.eye(4)                        # normalised source -> normalised target
     vel = np.zeros_like(Y)

@@ -38,6 +38,19 @@ def check_points(name: str, X: np.ndarray, min_points: int = 3) -> np.ndarray:
     return X
 
 
+def check_priors(priors: np.ndarray | None, n_source: int, n_target: int) -> np.ndarray | None:
+    """Prior matches as (K, 2) integer (source index, target index) pairs, or None if empty."""
+    if priors is None or len(priors) == 0:
+        return None
+    priors = np.asarray(priors)
+    if priors.ndim != 2 or priors.shape[1] != 2 or not np.issubdtype(priors.dtype, np.integer) \
+            or priors.min() < 0 or priors[:, 0].max() >= n_source \
+            or priors[:, 1].max() >= n_target:
+        raise ValueError(f'priors: expected (K, 2) in-range integer (source, target) index pairs '
+                         f'for {n_source} source and {n_target} target points')
+    return priors
+
+
 def normalise_pair(X: np.ndarray, Y: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """Target X and source Y each centred on its centroid and both scaled by one factor (the
