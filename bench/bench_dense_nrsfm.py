@@ -13,7 +13,6 @@ third: the reconstructor's online mode, milliseconds per frame after its first w
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -25,6 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import e3d_frobenius  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 from nrsfm_ros.io.synth import dense_tracks  # noqa: E402
@@ -102,39 +102,29 @@ def online_latency() -> list[dict]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser(__doc__)
     p.add_argument('--points', type=int, default=10_000)
-    p.add_argument('--json', default=None)
     args = p.parse_args()
     reconstruct(dense_tracks('face', 20, 500)['W'], method='bmm')     # warm-up imports
     rows = accuracy(args.points)
-    print('| surface | projection | condition | ' + ' | '.join(METHODS) + ' |')
-    print('|---|---|---|' + '---|' * len(METHODS))
     keys = sorted({(r['surface'], r['projection'], r['condition']) for r in rows},
                   key=lambda k: (k[0], k[1], k[2] != 'clean'))
-    for key in keys:
-        cells = []
-        for m in METHODS:
-            r = next(q for q in rows if (q['surface'], q['projection'], q['condition']) == key
-                     and q['method'] == m)
-            cells.append(f"{r['e3d_B_frame']:.4f} ({r['seconds']:.1f} s)")
-        print(f'| {key[0]} | {key[1]} | {key[2]} | ' + ' | '.join(cells) + ' |')
+    by_key = {(r['surface'], r['projection'], r['condition'], r['method']): r for r in rows}
+    table(['surface', 'projection', 'condition', *METHODS],
+          [[*key] + [f"{by_key[(*key, m)]['e3d_B_frame']:.4f} "
+                     f"({by_key[(*key, m)]['seconds']:.1f} s)" for m in METHODS]
+           for key in keys])
     scale = scaling()
+    by_size = {(r['P'], r['method']): r for r in scale}
     print()
-    print('| P | ' + ' | '.join(f'{m} s (peak MB)' for m in FAST) + ' |')
-    print('|---|' + '---|' * len(FAST))
-    for P in SIZES:
-        cells = [next(f"{r['seconds']:.2f} ({r['peak_MB']:.0f})" for r in scale
-                      if r['P'] == P and r['method'] == m) for m in FAST]
-        print(f'| {P:,} | ' + ' | '.join(cells) + ' |')
+    table(['P'] + [f'{m} s (peak MB)' for m in FAST],
+          [[f'{P:,}'] + [f"{by_size[(P, m)]['seconds']:.2f} ({by_size[(P, m)]['peak_MB']:.0f})"
+                         for m in FAST] for P in SIZES])
     online = online_latency()
     print()
-    print('| P | first window (ms) | online frame, median (ms) | online frame, p95 (ms) |')
-    print('|---|---|---|---|')
-    for r in online:
-        print(f"| {r['P']:,} | {r['window_ms']:.0f} | {r['frame_ms_median']:.1f} | "
-              f"{r['frame_ms_p95']:.1f} |")
+    table(['P', 'first window (ms)', 'online frame, median (ms)', 'online frame, p95 (ms)'],
+          [(f"{r['P']:,}", f"{r['window_ms']:.0f}", f"{r['frame_ms_median']:.1f}",
+            f"{r['frame_ms_p95']:.1f}") for r in online])
     if args.json:
         Path(args.json).write_text(json.dumps(rows + scale + online, indent=1))
     return 0

@@ -13,7 +13,6 @@ D and its compression ratio 3FP / (DP + 3DF).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -24,6 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import e3d_frobenius, e3d_normalized  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 
@@ -75,28 +75,23 @@ def compression() -> list[dict]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--json', default=None)
-    args = p.parse_args()
+    args = parser(__doc__).parse_args()
     reconstruct(np.load(DATA / 'face.npz')['W'][:40], method='bmm')   # warm-up imports
     rows = run()
-    print('| dataset (F x P) | method | e3D A | vs BMM (published) | e3D B global | '
-          'e3D B frame | seconds |')
-    print('|---|---|---|---|---|---|---|')
-    for r in rows:
+
+    def ratio(r: dict) -> str:
         anchor = ANCHORS.get(r['dataset'])
-        ratio = f"{r['e3d_A'] / anchor[0]:.2f}" if anchor else '-'
-        print(f"| {r['dataset']} ({r['F']} x {r['P']}) | {r['method']} | {r['e3d_A']:.4f} | "
-              f"{ratio} | {r['e3d_B_global']:.4f} | {r['e3d_B_frame']:.4f} | "
-              f"{r['seconds']:.2f} |")
+        return f"{r['e3d_A'] / anchor[0]:.2f}" if anchor else '-'
+    table(['dataset (F x P)', 'method', 'e3D A', 'vs BMM (published)', 'e3D B global',
+           'e3D B frame', 'seconds'],
+          [(f"{r['dataset']} ({r['F']} x {r['P']})", r['method'], f"{r['e3d_A']:.4f}", ratio(r),
+            f"{r['e3d_B_global']:.4f}", f"{r['e3d_B_frame']:.4f}", f"{r['seconds']:.2f}")
+           for r in rows])
     lifted = compression()
     print()
-    print('| dataset | ' + ' | '.join(f'D = {D}: e3D A (compression)' for D in LIFT_DIMS) + ' |')
-    print('|---|' + '---|' * len(LIFT_DIMS))
-    for name in DATASETS:
-        print(f'| {name} | ' + ' | '.join(f"{r['e3d_A']:.4f} ({r['compression']:.1f}x)"
-                                          for r in lifted if r['dataset'] == name) + ' |')
+    table(['dataset'] + [f'D = {D}: e3D A (compression)' for D in LIFT_DIMS],
+          [[name] + [f"{r['e3d_A']:.4f} ({r['compression']:.1f}x)" for r in lifted
+                     if r['dataset'] == name] for name in DATASETS])
     if args.json:
         Path(args.json).write_text(json.dumps(rows + lifted, indent=1))
     return 0

@@ -14,7 +14,6 @@ ratios to our best method of the scenario.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -26,6 +25,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import rotation_error_deg  # noqa: E402
 from nrsfm_ros.core.registration import register  # noqa: E402
 from nrsfm_ros.io.export import read_ply  # noqa: E402
@@ -280,20 +280,18 @@ def run() -> list[dict]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--json', default=None)
-    args = p.parse_args()
+    args = parser(__doc__).parse_args()
     rows = run()
-    print('| scenario | method | error | seconds | error / our best | time / our best |')
-    print('|---|---|---|---|---|---|')
-    for r in rows:
+
+    def cells(r: dict) -> tuple:
         best = min((q for q in rows if q['scenario'] == r['scenario'] and q['ours']),
                    key=lambda q: q['error'])
         err = f"{r['error']:.2f} deg" if r['unit'] == 'deg' else f"{r['error']:.4f}"
-        print(f"| {r['scenario']} | {r['method']} | {err} | {r['seconds']:.2f} | "
-              f"{r['error'] / max(best['error'], 1e-12):.2f} | "
-              f"{r['seconds'] / max(best['seconds'], 1e-12):.2f} |")
+        return (r['scenario'], r['method'], err, f"{r['seconds']:.2f}",
+                f"{r['error'] / max(best['error'], 1e-12):.2f}",
+                f"{r['seconds'] / max(best['seconds'], 1e-12):.2f}")
+    table(['scenario', 'method', 'error', 'seconds', 'error / our best', 'time / our best'],
+          [cells(r) for r in rows])
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

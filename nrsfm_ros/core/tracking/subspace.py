@@ -162,24 +162,19 @@ class GridSampler:
 
     def down(self, X: np.ndarray) -> np.ndarray:
         """(K, H*W) -> (K, h*w)."""
-        if self.step == 1:
-            return X
-        h, w = self.shape
-        hs, ws = self.small
-        out = np.empty((X.shape[0], hs * ws), np.float32)
-        for k in range(X.shape[0]):
-            out[k] = cv2.resize(X[k].reshape(h, w), (ws, hs),
-                                interpolation=cv2.INTER_AREA).ravel()
-        return out
+        return self._resize(X, self.shape, self.small, cv2.INTER_AREA)
 
     def up(self, X: np.ndarray) -> np.ndarray:
         """(K, h*w) -> (K, H*W) (bilinear; not re-orthonormalised: fits use least squares)."""
+        return self._resize(X, self.small, self.shape, cv2.INTER_LINEAR)
+
+    def _resize(self, X: np.ndarray, src: tuple[int, int], dst: tuple[int, int],
+                interpolation: int) -> np.ndarray:
+        """Every row of X, an image of shape ``src`` (h, w), resized to ``dst``."""
         if self.step == 1:
             return X
-        h, w = self.shape
-        hs, ws = self.small
-        out = np.empty((X.shape[0], h * w), np.float32)
+        out = np.empty((X.shape[0], dst[0] * dst[1]), np.float32)
         for k in range(X.shape[0]):
-            out[k] = cv2.resize(X[k].reshape(hs, ws), (w, h),
-                                interpolation=cv2.INTER_LINEAR).ravel()
+            out[k] = cv2.resize(X[k].reshape(src), (dst[1], dst[0]),
+                                interpolation=interpolation).ravel()
         return out
