@@ -185,6 +185,7 @@ def run() -> list[dict]:
     rigid = [('icp', {'max_iterations': 100}), ('icp-point-to-plane', {'max_iterations': 100}),
              ('icp', {'max_iterations': 100, 'voxel': 0.01}),
              ('icp-point-to-plane', {'max_iterations': 100, 'voxel': 0.01}),
+             ('icp-point-to-plane', {'max_iterations': 100, 'voxel': 0.01, 'init': 'global'}),
              ('cpd-rigid', {'w': 0.1, 'max_points': 1500}), ('ga', {}), ('bhrga', {})]
     for label, deg, kw in (('rigid 30 deg, clean, 35k', 30, {}),
                            ('rigid 90 deg, clean, 35k', 90, {}),
@@ -197,11 +198,14 @@ def run() -> list[dict]:
         for method, params in cases:
             if method == 'cpd-rigid' and kw:
                 params = {**params, 'w': 0.5}
+            if params.get('init') == 'global' and kw:
+                params = {**params, 'trim': 0.6}    # pairs kept: about the overlap
             t = time.perf_counter()
             res = register(src, tgt, method=method, **params)
             name = f'{method} (1% priors)' if 'priors' in params else method
             if 'voxel' in params:
-                name += f" (voxel {params['voxel']})"
+                name += f" (voxel {params['voxel']}" + (', init global)' if 'init' in params
+                                                        else ')')
             rows.append({'scenario': label, 'method': name, 'ours': True,
                          'error': rotation_error_deg(res.T_target_source[:3, :3], R),
                          'unit': 'deg', 'seconds': time.perf_counter() - t})

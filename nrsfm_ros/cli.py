@@ -125,7 +125,15 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument('target')
     rg.add_argument('--method', default='icp',
                     help='icp, icp-point-to-point, icp-point-to-plane, cpd-rigid, cpd-affine, '
-                    'cpd-nonrigid, ga (default icp)')
+                    'cpd-nonrigid, ga, bhrga, nrga (default icp; ecpd-* need prior matches, '
+                    'which the registrar node takes from track ids)')
+    rg.add_argument('--init', choices=('centroid', 'global'), default=None,
+                    help='icp*: centroid (default) or global (search over all rotations, '
+                    'robust to outliers and missing parts)')
+    rg.add_argument('--voxel', type=float, default=None,
+                    help='icp*: coarse-to-fine voxel edge in input units (default 0: off)')
+    rg.add_argument('--trim', type=float, default=None,
+                    help='icp*: fraction of closest pairs kept (default 0.9; about the overlap)')
     rg.add_argument('--w', type=float, default=None, help='cpd: outlier weight (default 0.1)')
     rg.add_argument('--beta', type=float, default=None,
                     help='cpd-nonrigid: kernel width in RMS radii (default 2.0)')
@@ -476,6 +484,10 @@ def cmd_register(args: argparse.Namespace) -> int:
     kw = {k: v for k in ('w', 'beta', 'lam') if (v := getattr(args, k)) is not None}
     if kw and not args.method.startswith('cpd'):
         raise CliError(f'--{sorted(kw)[0]} applies to the cpd methods, not {args.method}')
+    icp_kw = {k: v for k in ('init', 'voxel', 'trim') if (v := getattr(args, k)) is not None}
+    if icp_kw and not args.method.startswith('icp'):
+        raise CliError(f'--{sorted(icp_kw)[0]} applies to the icp methods, not {args.method}')
+    kw.update(icp_kw)
     res = register(read_points_file(args.source), read_points_file(args.target),
                    method=args.method, **kw)
     np.savez_compressed(args.out, T_target_source=res.T_target_source, aligned=res.aligned,

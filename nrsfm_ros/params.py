@@ -135,6 +135,11 @@ class RegistrarParams(Params):
     trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
     voxel: float = rule(0.0, _non_negative, 'icp*: voxel-grid edge (m) of the coarse-to-fine '
                         'levels (4, 2, 1 x voxel; centroids average the noise; 0: off)')
+    init: str = rule('centroid', _one_of('centroid', 'global'),
+                     'icp*: start of the first cloud and of every reflection re-check: centroid '
+                     '(translation only) or global (search over all rotations, robust to '
+                     'outliers and missing parts, ~1 s at 35k points); other clouds start from '
+                     'the previous transform')
     w: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
                     'cpd: weight of the uniform outlier component')
     beta: float = rule(2.0, _positive, 'cpd-nonrigid, ecpd-nonrigid, nrga: kernel width of '

@@ -318,6 +318,8 @@ class RegistrarProcessor(Processor):
         c = src.mean(axis=0)
         mirrored = src.copy()
         mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
+        if p.method.startswith('icp'):
+            kw['init'] = p.init
         if p.try_reflection and (self._checks % 10 == 0):
             res = register(src, self.reference, method=p.method, **kw)
             alt = register(mirrored, self.reference, method=p.method, **kw)
@@ -326,11 +328,9 @@ class RegistrarProcessor(Processor):
         else:
             # consecutive clouds move little: start from the previous frame's transform
             moving = mirrored if self.last_reflected else src
-            if not p.method.startswith('icp'):
-                res = register(moving, self.reference, method=p.method, **kw)
-            else:
-                init = 'centroid' if self._last_T is None else self._last_T
-                res = register(moving, self.reference, method=p.method, init=init, **kw)
+            if p.method.startswith('icp') and self._last_T is not None:
+                kw['init'] = self._last_T
+            res = register(moving, self.reference, method=p.method, **kw)
         self._checks += 1
         self._last_T = res.T_target_source
         stamp = stamp_ns(msg.header)

@@ -122,3 +122,31 @@ def test_reconstruct_default_bmm_and_register_cpd(tmp_path, capsys):
     assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--w', '0.1',
                  '--out', str(tmp_path / 'x.npz')]) != 0
     assert 'applies to the cpd methods' in capsys.readouterr().err
+
+
+def test_register_global_init_and_big_endian_ply(tmp_path, capsys):
+    """`register --init global` recovers a 150-degree pose that the centroid start misses; the
+    source is a binary big-endian PLY (as the horse scan of ../shared/data ships)."""
+    from scipy.spatial.transform import Rotation
+
+    from nrsfm_ros.core.metrics import rotation_error_deg
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-1, 1, (2, 3000))
+    X = np.stack([u, v, 0.5 * np.sin(2 * u) * np.cos(1.5 * v) + 0.3 * u * v + 0.2 * u ** 2], 1)
+    header = ('ply\nformat binary_big_endian 1.0\nelement vertex 3000\nproperty float x\n'
+              'property float y\nproperty float z\nproperty uchar red\nend_header\n').encode()
+    body = np.zeros(3000, [('x', '>f4'), ('y', '>f4'), ('z', '>f4'), ('red', 'u1')])
+    body['x'], body['y'], body['z'] = X.T
+    (tmp_path / 'a.ply').write_bytes(header + body.tobytes())
+    R = Rotation.from_rotvec(np.radians(150) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    np.save(tmp_path / 'b.npy', X @ R.T)
+    for init, ok in (('centroid', False), ('global', True)):
+        assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--method',
+                     'icp-point-to-plane', '--voxel', '0.05', '--init', init, '--out',
+                     str(tmp_path / 'r.npz')]) == 0
+        T = np.load(tmp_path / 'r.npz')['T_target_source']
+        assert (rotation_error_deg(T[:3, :3], R) < 1.0) == ok
+    capsys.readouterr()
+    assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--method',
+                 'cpd-rigid', '--init', 'global', '--out', str(tmp_path / 'r.npz')]) != 0
+    assert 'applies to the icp methods' in capsys.readouterr().err

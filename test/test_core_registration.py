@@ -234,3 +234,52 @@ def test_nrga_undoes_a_smooth_warp_and_validates():
         register(X, warped, method='nrga', damping=1.0)
     with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['w'\]"):
         register(X, warped, method='nrga', w=0.1)
+
+
+def test_so3_samples_cover_rotations_and_distance_field_is_exact():
+    from nrsfm_ros.core.registration.globalsearch import DistanceField, so3_samples
+    Rs = so3_samples(600)
+    assert np.allclose(np.einsum('rij,rkj->rik', Rs, Rs), np.eye(3), atol=1e-12)
+    probe = Rotation.random(300, random_state=1).as_matrix()
+    cos = (np.einsum('pij,rij->pr', probe, Rs) - 1) / 2
+    gap = np.degrees(np.arccos(np.clip(cos.max(1), -1, 1)))
+    assert gap.max() < 27 and np.median(gap) < 17     # every rotation has a sample nearby
+    X = surface(2000)
+    field = DistanceField(X, 0.02, 0.3)
+    Q = np.random.default_rng(0).uniform(-1.2, 1.2, (500, 3))
+    near = field.nearest(Q)
+    exact = np.sqrt(((Q[:, None] - X[None]) ** 2).sum(-1)).min(1)
+    assert np.all(np.isin(near, X).all(1))               # answers are target points
+    got = np.linalg.norm(near - Q, axis=1)
+    assert np.all(got >= exact - 1e-12) and np.all(got <= exact + 0.02 * np.sqrt(3) * 2)
+    with pytest.raises(ValueError, match='rotations'):
+        so3_samples(0)
+
+
+def test_global_init_finds_any_rotation_through_outliers_and_a_missing_part():
+    """Where trimmed ICP from the centroid lands in a wrong minimum, init='global' (SO(3)
+    search + density filter) recovers the pose; the density filter drops the uniform
+    clutter."""
+    from nrsfm_ros.core.registration.globalsearch import density_inliers, global_pose
+    rng = np.random.default_rng(3)
+    u, v = rng.uniform(-1, 1, (2, 6000))
+    X = np.stack([u, v, 0.5 * np.sin(2 * u) * np.cos(1.5 * v) + 0.3 * u * v + 0.2 * u ** 2], 1)
+    for deg, axis in ((120, [0.3, 1.0, 0.2]), (170, [1.0, -0.4, 0.5])):
+        R = Rotation.from_rotvec(np.radians(deg) * np.array(axis) / np.linalg.norm(axis))
+        R = R.as_matrix()
+        part = X[X[:, 0] > -0.4]                           # 30% missing
+        clutter = rng.uniform(part.min(0), part.max(0), (len(part) // 2, 3))
+        tgt = np.vstack([part + rng.normal(0, 0.005, part.shape), clutter]) @ R.T + [0.3, 0, 0]
+        src = X + rng.normal(0, 0.005, X.shape)
+        keep = density_inliers(tgt)
+        assert keep[:len(part)].mean() > 0.95 and keep[len(part):].mean() < 0.25
+        local = register(src, tgt, method='icp-point-to-plane', trim=0.6, voxel=0.05)
+        assert rotation_error_deg(local.T_target_source[:3, :3], R) > 10
+        res = register(src, tgt, method='icp-point-to-plane', trim=0.6, voxel=0.05,
+                       init='global')
+        assert rotation_error_deg(res.T_target_source[:3, :3], R) < 1.0
+        assert np.allclose(res.T_target_source[:3, 3], [0.3, 0, 0], atol=0.02)
+        g = global_pose(src, tgt, candidates=3)
+        assert g.candidate_scores.shape == (3,) and g.score == g.candidate_scores.max()
+    with pytest.raises(ValueError, match="init='bad'"):
+        register(src, tgt, method='icp', init='bad')

@@ -29,7 +29,7 @@ def write_ply(path: str | Path, points: np.ndarray, rgb: np.ndarray | None = Non
 
 
 def read_ply(path: str | Path) -> np.ndarray:
-    """x, y, z (N, 3) float64 of a PLY vertex element (ascii or binary little-endian)."""
+    """x, y, z (N, 3) float64 of a PLY vertex element (ascii, binary little- or big-endian)."""
     data = Path(path).read_bytes()
     end = data.find(b'end_header')
     if not data.startswith(b'ply') or end < 0:
@@ -57,9 +57,10 @@ def read_ply(path: str | Path) -> np.ndarray:
         arr = np.array([r.split()[:len(props)] for r in rows], dtype=np.float64)
         idx = [n for n, _ in props]
         return arr[:, [idx.index('x'), idx.index('y'), idx.index('z')]]
-    if fmt != 'binary_little_endian':
+    order = {'binary_little_endian': '<', 'binary_big_endian': '>'}.get(fmt)
+    if order is None:
         raise ValueError(f'{path}: unsupported PLY format {fmt!r}')
-    dt = np.dtype([(n, '<' + t) for n, t in props])
+    dt = np.dtype([(n, order + t) for n, t in props])
     arr = np.frombuffer(body[:dt.itemsize * count], dtype=dt)
     return np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
 

@@ -1,7 +1,8 @@
 """Point set registration by method name: ICP (point-to-point, point-to-plane), Coherent Point
 Drift (rigid, affine, non-rigid), ECPD (CPD with prior correspondences), the rigid
 gravitational approach (GA), its Barnes-Hut energy-minimising form (BH-RGA) and the non-rigid
-gravitational approach (NRGA).  One result type, ``RegistrationResult``."""
+gravitational approach (NRGA).  One result type, ``RegistrationResult``.  ICP's
+``init='global'`` starts it from a search over all rotations (``global_pose``)."""
 from __future__ import annotations
 
 from typing import Any
@@ -10,6 +11,7 @@ import numpy as np
 
 from .bhrga import bhrga
 from .cpd import cpd
+from .globalsearch import GlobalPose, global_pose
 from .gravitational import ga
 from .icp import ICP_METHODS, RegistrationResult, icp
 from .nrga import nrga
@@ -65,5 +67,5 @@ def register(source: np.ndarray, target: np.ndarray, method: str = 'icp', **para
     raise ValueError(f'method={method!r}: expected one of {METHODS}')
 
 
-__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'RegistrationResult', 'bhrga', 'cpd', 'ga',
-           'icp', 'nrga', 'register']
+__all__ = ['CPD_METHODS', 'ICP_METHODS', 'METHODS', 'GlobalPose', 'RegistrationResult', 'bhrga',
+           'cpd', 'ga', 'global_pose', 'icp', 'nrga', 'register']

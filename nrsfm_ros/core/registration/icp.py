@@ -134,7 +134,9 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         voxel: float = 0.0) -> RegistrationResult:
     """Align ``source`` (N, 3) to ``target`` (M, 3).
 
-    ``init``: 'centroid' (translate centroids together), 'identity', or a 4x4 T_target_source.
+    ``init``: 'centroid' (translate centroids together), 'identity', 'global' (a search over
+    all rotations, robust to outliers and missing parts: ``globalsearch.global_pose``; the
+    iterations then use the target points its density filter keeps), or a 4x4 T_target_source.
     ``trim``: fraction of closest pairs kept each iteration (robust to partial overlap).
     ``target_tree``: a cKDTree of ``target`` to reuse across calls (a fixed reference).
     ``max_points``: the iterations use an evenly strided subset of at most this many source
@@ -150,41 +152,89 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         raise ValueError(f'trim: expected in [0.1, 1], got {trim}')
     src = check_points('source', source)
     dst = check_points('target', target)
+    full_src, full_dst = src, dst
     if isinstance(init, str):
         T = np.eye(4)
         if init == 'centroid':
             T[:3, 3] = dst.mean(axis=0) - src.mean(axis=0)
+        elif init == 'global':
+            from .globalsearch import global_pose       # it builds on this module
+            g = global_pose(src, dst, trim=min(trim, 0.6))
+            T, dst = g.T_target_source, dst[g.target_inliers]
         elif init != 'identity':
-            raise ValueError(f"init={init!r}: expected 'centroid', 'identity' or a 4x4 array")
+            raise ValueError(f"init={init!r}: expected 'centroid', 'identity', 'global' or a "
+                             '4x4 array')
     else:
         T = np.asarray(init, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f'init: expected a 4x4 transform, got shape {T.shape}')
     if voxel < 0 or not np.isfinite(voxel):
         raise ValueError(f'voxel={voxel}: expected >= 0')
-    full_src, full_dst = src, dst
-    # voxel > 0: coarse-to-fine over grids of 4, 2, 1 x voxel (a wide basin and few points
-    # first); otherwise one level on the (strided) points themselves
-    scales = (4.0, 2.0, 1.0) if voxel > 0 else (0.0,)
-    it = total = 0
+    # the iterations reuse target_tree only when they run on the whole target itself
+    levels = icp_levels(src, dst, method, voxel, max_points,
+                        target_tree if voxel == 0 and dst is full_dst else None)
+    T, it, converged, rmse = icp_iterate(levels, T, method, max_iterations, tolerance,
+                                         max_correspondence_distance, trim, voxel)
+    if voxel > 0 or dst is not full_dst:
+        tree = cKDTree(full_dst) if target_tree is None else target_tree
+    else:
+        tree = levels[0].tree
+    aligned = _apply(T, full_src)
+    dist, idx = tree.query(aligned, workers=-1)
+    keep = dist <= max_correspondence_distance
+    corr = np.where(keep, idx, -1)
+    return RegistrationResult(T_target_source=T, aligned=aligned,
+                              displacement=aligned - full_src,
+                              correspondences=corr, iterations=it, converged=converged,
+                              residual=rmse, fitness=float(keep.mean()),
+                              seconds=time.perf_counter() - t0, method=f'icp-{method}')
+
+
+@dataclass
+class IcpLevel:
+    """One level of the coarse-to-fine iterations: (strided) source points, target points, their
+    KD-tree, target normals computed when first paired (NaN until then), the cell-edge factor."""
+
+    src: np.ndarray
+    dst: np.ndarray
+    tree: cKDTree
+    normals: np.ndarray | None
+    factor: float
+
+
+def icp_levels(src: np.ndarray, dst: np.ndarray, method: str, voxel: float, max_points: int,
+               target_tree: cKDTree | None = None) -> list[IcpLevel]:
+    """voxel > 0: grids of 4, 2, 1 x voxel (a wide basin and few points first); otherwise one
+    level on the points themselves.  Reusable across starts (see ``icp_iterate``)."""
+    levels = []
+    for f in ((4.0, 2.0, 1.0) if voxel > 0 else (0.0,)):
+        s, d = (voxel_downsample(src, f * voxel), voxel_downsample(dst, f * voxel)) \
+            if f > 0 else (src, dst)
+        if max_points and s.shape[0] > max_points:
+            s = s[np.linspace(0, s.shape[0] - 1, max_points).astype(np.intp)]
+        tree = target_tree if (f == 0 and target_tree is not None) else cKDTree(d)
+        normals = np.full(d.shape, np.nan) if method == 'point_to_plane' else None
+        levels.append(IcpLevel(s, d, tree, normals, f))
+    return levels
+
+
+def icp_iterate(levels: list[IcpLevel], T: np.ndarray, method: str, max_iterations: int,
+                tolerance: float, max_correspondence_distance: float, trim: float, voxel: float
+                ) -> tuple[np.ndarray, int, bool, float]:
+    """Trimmed ICP from ``T`` through ``levels``: (T, iterations, converged, RMSE)."""
+    total = 0
     converged = False
     rmse = np.inf
-    for level, f in enumerate(scales):
-        if f > 0:
-            src, dst = voxel_downsample(full_src, f * voxel), voxel_downsample(full_dst, f * voxel)
-            tree = cKDTree(dst)
-        else:
-            tree = cKDTree(dst) if target_tree is None else target_tree
-        if max_points and src.shape[0] > max_points:
-            src = src[np.linspace(0, src.shape[0] - 1, max_points).astype(np.intp)]
-        # normals of the target points that get paired, computed when first paired
-        normals = np.full(dst.shape, np.nan) if method == 'point_to_plane' else None
-        last = level == len(scales) - 1
+    for level, lv in enumerate(levels):
+        src, dst, tree, normals, f = lv.src, lv.dst, lv.tree, lv.normals, lv.factor
+        workers = -1 if src.shape[0] > 4000 else 1      # threads cost more than small queries
+        last = level == len(levels) - 1
         prev = np.inf
         converged = False
+        it = 0
         for it in range(1, max_iterations + 1):
             moved = _apply(T, src)
-            dist, idx = tree.query(moved, workers=-1)
+            dist, idx = tree.query(moved, workers=workers)
             keep = dist <= max_correspondence_distance
             if trim < 1.0 and keep.sum() > 10:
                 cutoff = np.quantile(dist[keep], trim)
@@ -212,18 +262,7 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
                 break
             prev = rmse
         total += it
-    it = total
-    aligned = _apply(T, full_src)
-    if voxel > 0:
-        tree = cKDTree(full_dst) if target_tree is None else target_tree
-    dist, idx = tree.query(aligned, workers=-1)
-    keep = dist <= max_correspondence_distance
-    corr = np.where(keep, idx, -1)
-    return RegistrationResult(T_target_source=T, aligned=aligned,
-                              displacement=aligned - full_src,
-                              correspondences=corr, iterations=it, converged=converged,
-                              residual=rmse, fitness=float(keep.mean()),
-                              seconds=time.perf_counter() - t0, method=f'icp-{method}')
+    return T, total, converged, rmse
 
 
 def _point_to_plane_step(A: np.ndarray, B: np.ndarray, n: np.ndarray) -> np.ndarray:

@@ -1,0 +1,147 @@
+"""Global rigid pose search: a start for local registration from any rotation, robust to outliers
+and partial overlap.
+
+Local methods (ICP, CPD, GA) converge only from poses near the truth; with clustered missing
+parts and dense outliers their basins shrink and wrong poses become strong local optima.  This
+search needs no features and no correspondences:
+
+1. Outlier filter: a point whose distance to its 8th neighbour exceeds 1.5 x the 30th percentile
+   of that distance over its own cloud lies off any sampled surface and is dropped (uniform
+   clutter is an order of magnitude sparser than a scanned surface).
+2. The filtered target becomes a distance field: a grid over its padded bounding box whose cells
+   store their nearest target point (one exact Euclidean distance transform).  Nearest-point
+   queries are then one array lookup, vectorised over all hypotheses at once.
+3. Rotations: ``rotations`` evenly spread samples of SO(3) (super-Fibonacci spirals, Alexa,
+   CVPR 2022).  For each, the translation follows a truncated mean shift of a coarse source
+   (4 steps, pairs within 3 delta), and the hypothesis is scored by the truncated quadratic
+   sum(max(0, 1 - d^2 / delta^2)) over the source points (delta 3% of the source's diagonal).
+4. The ``candidates`` best hypotheses that differ by > 15 degrees are refined by trimmed
+   coarse-to-fine point-to-plane ICP and rescored at a fine delta (1% of the diagonal); the best
+   refined pose wins.
+
+Cost: one kNN filter pass per cloud, one distance transform, rotations x coarse points lookups
+(600 x ~550 on the bunny) and ``candidates`` coarse ICPs: about 1 s at 35k points on 2 cores.
+``icp(..., init='global')`` runs it and then its own iterations on the filtered target.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from .icp import icp_iterate, icp_levels, voxel_downsample
+
+
+@dataclass(frozen=True)
+class GlobalPose:
+    """Best pose T_target_source, its fine score (source points explained, soft count), the
+    score of each refined candidate, and the target's inlier mask from the density filter."""
+
+    T_target_source: np.ndarray
+    score: float
+    candidate_scores: np.ndarray
+    target_inliers: np.ndarray
+
+
+def so3_samples(n: int) -> np.ndarray:
+    """``n`` rotation matrices spread evenly over SO(3) (super-Fibonacci spirals)."""
+    if n < 1:
+        raise ValueError(f'rotations: expected >= 1, got {n}')
+    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
+    i = np.arange(n) + 0.5
+    s = i / n
+    r, rr = np.sqrt(s), np.sqrt(1.0 - s)
+    a, b = 2 * np.pi * i / phi, 2 * np.pi * i / psi
+    q = np.stack([r * np.sin(a), r * np.cos(a), rr * np.sin(b), rr * np.cos(b)], axis=1)
+    return Rotation.from_quat(q).as_matrix()
+
+
+def density_inliers(X: np.ndarray, k: int = 8, factor: float = 1.5,
+                    quantile: float = 0.3) -> np.ndarray:
+    """Mask of points whose k-th neighbour distance is below ``factor`` times the
+    ``quantile`` of that distance over the cloud (sparse clutter off the surface is False)."""
+    if X.shape[0] <= k + 1:
+        return np.ones(X.shape[0], bool)
+    d = cKDTree(X).query(X, k=k + 1, workers=-1)[0][:, -1]
+    return d <= factor * np.quantile(d, quantile)
+
+
+class DistanceField:
+    """Nearest target point for any query, by lookup in a grid (edge ``h``) over the target's
+    bounding box padded by ``pad``; outside the box the nearest cell of its border answers."""
+
+    def __init__(self, X: np.ndarray, h: float, pad: float) -> None:
+        self.lo = X.min(0) - pad
+        self.h = h
+        self.dims = np.ceil((X.max(0) + pad - self.lo) / h).astype(np.intp) + 1
+        empty = np.ones(tuple(self.dims), bool)
+        ijk = np.floor((X - self.lo) / h).astype(np.intp)
+        empty[tuple(ijk.T)] = False
+        # the representative of each occupied cell: one of its points
+        rep = np.zeros(tuple(self.dims) + (3,))
+        rep[tuple(ijk.T)] = X
+        idx = distance_transform_edt(empty, return_distances=False, return_indices=True)
+        self.near = rep[idx[0], idx[1], idx[2]].reshape(-1, 3)
+
+    def nearest(self, Q: np.ndarray) -> np.ndarray:
+        g = np.floor((Q - self.lo) / self.h).astype(np.intp)
+        np.clip(g, 0, self.dims - 1, out=g)
+        flat = (g[..., 0] * self.dims[1] + g[..., 1]) * self.dims[2] + g[..., 2]
+        return self.near[flat]
+
+
+def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
+                candidates: int = 5, trim: float = 0.6) -> GlobalPose:
+    """Search SO(3) x R^3 for the pose that best explains ``target`` by ``source`` (both (N, 3),
+    input units); see the module docstring.  ``trim``: fraction of pairs kept by the candidate
+    refinement (below the expected overlap)."""
+    if candidates < 1:
+        raise ValueError(f'candidates: expected >= 1, got {candidates}')
+    keep_t = density_inliers(target)
+    src = source[density_inliers(source)]
+    tgt = target[keep_t]
+    diag = float(np.linalg.norm(src.max(0) - src.min(0)))
+    if tgt.shape[0] < 3 or diag <= 0:
+        raise ValueError('target: fewer than 3 points left after the outlier filter')
+    delta = 0.03 * diag
+    X = voxel_downsample(tgt, 0.02 * diag)
+    Y = voxel_downsample(src, 0.05 * diag)
+    field = DistanceField(X, 0.01 * diag, 0.3 * diag)
+    Rs = so3_samples(rotations)
+    cy = Y.mean(0)
+    P = np.einsum('rij,nj->rni', Rs, Y - cy)              # (rotations, n, 3)
+    t = np.tile(X.mean(0), (rotations, 1))
+    for _ in range(4):                                      # truncated mean shift of t
+        Q = P + t[:, None]
+        d = field.nearest(Q) - Q
+        w = (d ** 2).sum(-1) < (3 * delta) ** 2
+        t += (d * w[..., None]).sum(1) / np.maximum(w.sum(1), 1)[:, None]
+    Q = P + t[:, None]
+    score = np.clip(1 - ((field.nearest(Q) - Q) ** 2).sum(-1) / delta ** 2, 0, None).sum(1)
+    picked: list[int] = []
+    for r in np.argsort(-score):                            # best first, 15 deg apart
+        if all(np.arccos(np.clip((np.trace(Rs[r].T @ Rs[p]) - 1) / 2, -1, 1))
+               > np.radians(15) for p in picked):
+            picked.append(int(r))
+            if len(picked) == candidates:
+                break
+    # refine each on 1%-of-diagonal grids and rescore at a fine delta
+    Xf = voxel_downsample(tgt, 0.01 * diag)
+    Yf = voxel_downsample(src, 0.01 * diag)
+    tree = cKDTree(Xf)
+    levels = icp_levels(Yf, Xf, 'point_to_plane', 0.02 * diag, 0)   # shared by the candidates
+    best_T, scores = np.eye(4), np.zeros(len(picked))
+    for c, r in enumerate(picked):
+        T0 = np.eye(4)
+        T0[:3, :3] = Rs[r]
+        T0[:3, 3] = t[r] - Rs[r] @ cy
+        T = icp_iterate(levels, T0, 'point_to_plane', 30, 1e-6, np.inf, trim, 0.02 * diag)[0]
+        d = tree.query(Yf @ T[:3, :3].T + T[:3, 3])[0]
+        scores[c] = np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).sum()
+        if scores[c] >= scores.max():
+            best_T = T
+    return GlobalPose(T_target_source=best_T, score=float(scores.max()),
+                      candidate_scores=scores, target_inliers=keep_t)
