@@ -241,7 +241,7 @@ def run() -> list[dict]:
         tgt = (truth + rng.normal(0, 0.005, truth.shape))[rng.permutation(n)]
         for method, params in (('cpd-rigid', {'w': 0.0}),
                                ('cpd-nonrigid', {'w': 0.0, 'max_points': 1500,
-                                                 'max_iterations': 60}),
+                                                 'max_iterations': 150}),
                                ('nrga', {})):
             if n > 5000 and method == 'cpd-rigid':
                 continue

@@ -100,6 +100,31 @@ def test_cpd_nonrigid_undoes_a_smooth_warp():
     assert np.allclose(res.displacement, res.aligned - X)
 
 
+def test_sparse_estep_equals_dense_with_all_pairs_and_sparse_stages_refine():
+    """The k-nearest-pairs E-step is the dense one when every pair is a candidate; on a noisy
+    warp larger than max_points the fine and sparse stages (all points, narrower kernel) beat
+    the coarse stage alone."""
+    from nrsfm_ros.core.registration.cpd import estep, estep_pairs
+    rng = np.random.default_rng(5)
+    X, TY = rng.normal(size=(60, 3)), rng.normal(size=(40, 3))
+    dense = estep(X, TY, 0.7, 0.2)
+    pairs = np.tile(np.arange(40), (60, 1))
+    for a, b in zip(dense, estep_pairs(X, TY, 0.7, 0.2, pairs)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    X = surface(3000, seed=1)
+    C = X[rng.choice(3000, 6, replace=False)]
+    warped = X + 0.08 * np.exp(-((X[:, None] - C[None]) ** 2).sum(-1) / (2 * 0.4 ** 2)) \
+        @ rng.normal(size=(6, 3))
+    tgt = (warped + rng.normal(0, 0.01, X.shape))[rng.permutation(3000)]
+    kw = dict(w=0.0, max_points=500, max_iterations=100)
+    coarse = register(X, tgt, method='cpd-nonrigid', refine_points=0, sparse_points=0, **kw)
+    staged = register(X, tgt, method='cpd-nonrigid', **kw)
+    rmse = [np.sqrt(((r.aligned - warped) ** 2).sum(1).mean()) for r in (coarse, staged)]
+    assert rmse[1] < 0.3 * rmse[0] and rmse[1] < 0.01, rmse
+    with pytest.raises(ValueError, match='sparse_knn'):
+        register(X, tgt, method='cpd-nonrigid', sparse_knn=-1)
+
+
 def test_register_rejects_unknown_method_and_parameters():
     with pytest.raises(ValueError, match="method='gravity'"):
         register(surface(50), surface(50), method='gravity')

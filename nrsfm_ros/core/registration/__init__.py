@@ -24,7 +24,8 @@ ICP_PARAMS = {'max_iterations', 'tolerance', 'max_correspondence_distance', 'ini
               'max_points', 'target_tree', 'voxel'}
 CPD_PARAMS = {'w', 'max_iterations', 'tolerance', 'scale', 'beta', 'lam', 'landmarks',
               'max_points', 'seed', 'normalise', 'priors', 'alpha', 'refine_points',
-              'fine_iterations', 'sigma2'}
+              'fine_iterations', 'sigma2', 'knn', 'sparse_points', 'sparse_iterations',
+              'sparse_knn'}
 GA_PARAMS = {'max_iterations', 'tolerance', 'eps', 'dt', 'damping', 'max_points', 'priors',
              'prior_mass', 'seed', 'polish_trim'}
 BHRGA_PARAMS = {'eps_start', 'eps_end', 'stages', 'theta', 'max_particles', 'iterations',
