@@ -145,7 +145,7 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
         seed: int = 0, normalise: bool = True, priors: np.ndarray | None = None,
         alpha: float = 1e-3, refine_points: int = 5000, fine_iterations: int = 30,
         sigma2: float | None = None, knn: int = 0, sparse_points: int = 100_000,
-        sparse_iterations: int = 50, sparse_knn: int = 16) -> RegistrationResult:
+        sparse_iterations: int = 100, sparse_knn: int = 16) -> RegistrationResult:
     """CPD of ``source`` onto ``target`` (kind rigid | affine | nonrigid).
 
     ``w`` outlier weight in [0, 1); ``beta``, ``lam`` kernel width and smoothness of the
