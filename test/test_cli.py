@@ -150,3 +150,17 @@ def test_register_global_init_and_big_endian_ply(tmp_path, capsys):
     assert main(['register', str(tmp_path / 'a.ply'), str(tmp_path / 'b.npy'), '--method',
                  'cpd-rigid', '--init', 'global', '--out', str(tmp_path / 'r.npz')]) != 0
     assert 'applies to the icp methods' in capsys.readouterr().err
+
+
+def test_reconstruct_va(tmp_path, capsys):
+    sys.path.insert(0, str(__import__('pathlib').Path(__file__).parent))
+    from tests_helpers import low_rank_sequence
+    W, S, _ = low_rank_sequence(K=2, F=20, P=150)
+    np.savez(tmp_path / 'tracks.npz', W=W)
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'va', '--out',
+                 str(tmp_path / 'v.npz')]) == 0
+    assert np.load(tmp_path / 'v.npz')['S'].shape == S.shape
+    capsys.readouterr()
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'va', '--rank', '3',
+                 '--out', str(tmp_path / 'v.npz')]) != 0
+    assert '--rank does not apply' in capsys.readouterr().err

@@ -256,6 +256,14 @@ def test_row_space_and_dense_tracks():
     assert row_space(noisy)[1].shape == (24, 400)         # noise fills every direction
     with pytest.raises(ValueError, match="projection='pinhole'"):
         dense_tracks('face', projection='pinhole')
+    g = dense_tracks('flag', frames=4, points=400, sampling='grid')    # a regular grid
+    P = g['W'].shape[1]
+    assert 300 <= P <= 500 and g['S'].shape == (4, P, 3)
+    from scipy.spatial import cKDTree
+    d1 = cKDTree(g['S_world'][0]).query(g['S_world'][0], k=2)[0][:, 1]
+    assert d1.std() < 0.2 * d1.mean()                          # even spacing, unlike random
+    with pytest.raises(ValueError, match="sampling='hex'"):
+        dense_tracks('face', sampling='hex')
 
 
 def test_hdsm_lift_is_exact_for_rigid_and_monotone_in_the_dimension():
@@ -279,3 +287,58 @@ def test_hdsm_lift_is_exact_for_rigid_and_monotone_in_the_dimension():
     assert res.S.shape == S.shape
     with pytest.raises(ValueError, match='dim=2'):
         reconstruct(W, method='hdsm', dim=2)
+
+
+def test_va_huber_prox_grid_graph_and_tv_denoising():
+    """The Huber shrink is the prox of t * h_eps; the graph of a regular grid is its
+    4-connected grid; with exact cameras the TV term removes track noise from the shapes
+    (the data term alone keeps it)."""
+    from scipy.optimize import minimize
+
+    from nrsfm_ros.core.nrsfm.va import grid_graph, huber_shrink, va_shapes
+    rng = np.random.default_rng(0)
+    for v in rng.normal(size=(5, 3)) * [[0.1], [0.5], [1.0], [2.0], [4.0]]:
+        t, eps = 0.7, 0.5
+        h = lambda x: (x @ x / (2 * eps) if np.linalg.norm(x) <= eps  # noqa: E731
+                       else np.linalg.norm(x) - eps / 2)
+        best = minimize(lambda x: t * h(x) + 0.5 * ((x - v) ** 2).sum(), v, tol=1e-12).x
+        np.testing.assert_allclose(huber_shrink(v[None], t, eps)[0], best, atol=1e-5)
+    n = 12
+    gx, gy = np.meshgrid(np.arange(n) * 3.0, np.arange(n) * 3.0)
+    pos = np.stack([gx.ravel(), gy.ravel()], 1)
+    D = grid_graph(pos)
+    assert D.shape[1] == n * n and np.all(abs(D).sum(1) == 2)
+    inner = ((gx > 0) & (gx < 3 * (n - 1)) & (gy > 0) & (gy < 3 * (n - 1))).ravel()
+    L = (D.T @ D).toarray()
+    assert np.all(np.diag(L)[inner] == 4)                     # interior: the 4-connected grid
+    nb = np.argwhere((L < 0) & inner[:, None])
+    np.testing.assert_allclose(np.linalg.norm(pos[nb[:, 0]] - pos[nb[:, 1]], axis=1), 3.0)
+    # a smooth bump seen by 6 known cameras, tracks with 3 px noise
+    F, P = 6, n * n
+    X = np.stack([gx.ravel() - gx.mean(), gy.ravel() - gy.mean(),
+                  10 * np.exp(-((gx.ravel() - 16) ** 2 + (gy.ravel() - 16) ** 2) / 100)], 0)
+    R = Rotation.from_euler('y', np.linspace(-20, 20, F)[:, None], degrees=True).as_matrix()
+    R2 = R[:, :2]
+    W = (R2 @ X[None]).reshape(2 * F, P)
+    Wn = W + rng.normal(0, 3.0, W.shape)
+    S0 = np.tile(X[None], (F, 1, 1)) + np.concatenate(
+        [(R2.transpose(0, 2, 1) @ (Wn - W).reshape(F, 2, P))[:, :2], np.zeros((F, 1, P))], 1)
+    V = np.ones((F, P))
+    plain, _ = va_shapes(Wn, V, R2, D, S0, 1e-4, 0.0, 0.01, iterations=60)
+    tv, _ = va_shapes(Wn, V, R2, D, S0, 1e-4, 0.1, 0.01, iterations=60)
+    err = [np.sqrt(((S[:, :2] - X[None, :2]) ** 2).mean()) for S in (S0, plain, tv)]
+    assert err[2] < 0.7 * err[1] and err[1] > 0.8 * err[0], err
+
+
+def test_va_reduces_to_cdf_without_tv_and_validates(capsys):
+    W, S, _ = low_rank_sequence(K=2, P=200)
+    Wn = W + np.random.default_rng(1).normal(0, 0.01 * W.std(), W.shape)
+    base = reconstruct(Wn, method='cdf')
+    same = reconstruct(Wn, method='va', mu=0.0, iterations=50)
+    assert same.method == 'va' and same.S.shape == S.shape
+    assert e3d_frobenius(same.S, base.S, 'frame') < 1e-3
+    smooth = reconstruct(Wn, method='va', mu=0.1, camera_rounds=1, iterations=50)
+    assert np.isfinite(smooth.S).all() and smooth.iterations == 100
+    for bad in ({'mu': -1.0}, {'eps': 0.0}, {'iterations': 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            reconstruct(Wn, method='va', **bad)

@@ -307,9 +307,11 @@ def scene_flow_ground_truth(seq: SynthSequence, f: int) -> np.ndarray:
 def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
                  projection: str = 'orthographic', camera_motion_deg: float = 40.0,
                  fps: float = 10.0, distance: float = 4.0, focal: float = 2000.0,
-                 seed: int = 0) -> dict[str, np.ndarray]:
+                 seed: int = 0, sampling: str = 'random') -> dict[str, np.ndarray]:
     """Ground-truth dense tracks of a deforming surface without rendering (for NRSfM benchmarks
     at any size): ``points`` surface samples, the same camera path as ``generate``.
+    ``sampling``: 'random' (uniform in the surface's domain) or 'grid' (a regular grid of the
+    domain, about ``points`` samples, as a tracker's every-stride-th pixel gives).
 
     ``projection``: 'orthographic' (W = focal / distance x the camera-frame x, y) or
     'weak-perspective' (W = focal / mean depth of the frame x x, y).  Returns W (2F, P),
@@ -321,21 +323,32 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
                          "'weak-perspective'")
     if frames < 3 or points < 3:
         raise ValueError(f'frames={frames}, points={points}: expected >= 3')
+    if sampling not in ('random', 'grid'):
+        raise ValueError(f"sampling={sampling!r}: expected 'random' or 'grid'")
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, 3)
     cfg = SynthConfig(surface=surface, frames=frames, fps=fps, seed=seed, distance=distance,
                       camera_motion_deg=camera_motion_deg)
     poses = _camera_poses(cfg, rng)
-    s = np.empty(0)
-    t = np.empty(0)
-    while s.size < points:                   # rejection sampling of the surface's domain
-        cs, ct = rng.uniform(0, 1, (2, 2 * points))
-        keep = _in_domain(surface, cs, ct)
-        s, t = np.concatenate([s, cs[keep]]), np.concatenate([t, ct[keep]])
-    s, t = s[:points], t[:points]
+    if sampling == 'grid':                   # the domain's share of the unit square, then a grid
+        cs, ct = rng.uniform(0, 1, (2, 20000))
+        n = int(np.ceil(np.sqrt(points / max(_in_domain(surface, cs, ct).mean(), 1e-3))))
+        s, t = (a.ravel() for a in np.meshgrid((np.arange(n) + 0.5) / n,
+                                               (np.arange(n) + 0.5) / n))
+        keep = _in_domain(surface, s, t)
+        s, t = s[keep], t[keep]
+    else:
+        s = np.empty(0)
+        t = np.empty(0)
+        while s.size < points:               # rejection sampling of the surface's domain
+            cs, ct = rng.uniform(0, 1, (2, 2 * points))
+            keep = _in_domain(surface, cs, ct)
+            s, t = np.concatenate([s, cs[keep]]), np.concatenate([t, ct[keep]])
+        s, t = s[:points], t[:points]
     Sw = np.stack([_surface(surface, s, t, f / fps, 1.0, phase) for f in range(frames)])
     S = np.einsum('fij,fpj->fpi', poses[:, :3, :3], Sw) + poses[:, None, :3, 3]
     k = focal / (distance if projection == 'orthographic' else S[:, :, 2].mean(1))
     W = (np.broadcast_to(np.reshape(k, (-1, 1, 1)), (frames, 1, 1)) * S[:, :, :2])
-    return {'W': W.transpose(0, 2, 1).reshape(2 * frames, points), 'V': np.ones((frames, points)),
+    P = s.size
+    return {'W': W.transpose(0, 2, 1).reshape(2 * frames, P), 'V': np.ones((frames, P)),
             'S': S, 'S_world': Sw}

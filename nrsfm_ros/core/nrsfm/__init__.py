@@ -12,6 +12,7 @@ from .cdf import cdf
 from .hdsm import hdsm
 from .factorization import low_rank, rigid
 from .online import OnlineNRSfM
+from .va import va
 from .result import NRSfMResult, check_tracks
 from .window import WindowNRSfM
 
@@ -23,6 +24,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'amp': amp,
     'cdf': cdf,
     'hdsm': hdsm,
+    'va': va,
 }
 
 
