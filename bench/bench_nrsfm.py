@@ -30,7 +30,7 @@ from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 DATA = ROOT.parent / 'shared' / 'data' / 'nrsfm'
 DATASETS = ('drink', 'pickup', 'stretch', 'face', 'walking')
 METHODS = {'rigid': {}, 'lowrank': {'rank': 3}, 'bmm': {}, 'smsr': {}, 'amp': {'rank': 5},
-           'hdsm': {}, 'va': {}}
+           'hdsm': {}}
 LIFT_DIMS = (3, 4, 6, 9, 12)
 ANCHORS = {'drink': (0.0266, 0.0250), 'pickup': (0.1731, 0.2369), 'stretch': (0.1034, 0.1088)}
 
