@@ -34,13 +34,19 @@ def project_blocks(M: np.ndarray, R2: np.ndarray, rounds: int = 3
 
 
 def amp(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: int = 30,
-        tol: float = 1e-7, init: NRSfMResult | None = None) -> NRSfMResult:
-    """Metric-projection NRSfM with ``rank`` K basis shapes (see the module docstring)."""
+        tol: float = 1e-7, init: NRSfMResult | None = None, prox: float = 1e-3
+        ) -> NRSfMResult:
+    """Metric-projection NRSfM with ``rank`` K basis shapes (see the module docstring);
+    ``prox``: weight of the proximal pull of each least-squares step towards the current
+    iterate, relative to the mean diagonal of its normal equations (plus a 1e-9 floor, so the
+    directions the data cannot see stay where they are)."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     F, P = V.shape
     if not 1 <= rank <= min(F, P):
         raise ValueError(f'rank={rank}: expected 1..min(F, P)={min(F, P)}')
+    if not prox >= 0:
+        raise ValueError(f'prox: expected >= 0, got {prox}')
     Wc, t = _centre(W, V)
     base = init if init is not None else bmm(W, V)
     R2 = base.R[:, :2].copy()
@@ -63,18 +69,22 @@ def amp(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: i
         # (3) basis given cameras and coefficients: per point, (3K) weighted least squares
         Rk = np.einsum('fk,fij->fikj', c, R2).reshape(F, 2, 3 * rank)
         A = np.einsum('fp,fia,fib->pab', V, Rk, Rk)
-        # a relative ridge keeps the solves regular when the data's rank is below K
-        A += (1e-9 * np.trace(A, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None, None] \
-            * np.eye(3 * rank)
-        b = np.einsum('fp,fia,fip->pa', V, Rk, Wf)
+        # proximal terms (weight ``prox`` x the mean diagonal) keep every least-squares step
+        # regular and its unseen directions at their current values when the data's rank is
+        # below 3K (exact low-rank W): without them those directions are arbitrary and the
+        # alternation drifts away from its initialisation
+        mu = ((prox + 1e-9) * np.trace(A, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None]
+        A += mu[:, :, None] * np.eye(3 * rank)
+        b = np.einsum('fp,fia,fip->pa', V, Rk, Wf) + mu * B.transpose(2, 0, 1).reshape(P, -1)
         B = np.linalg.solve(A, b[..., None])[..., 0].reshape(P, rank, 3).transpose(1, 2, 0)
         # (1) motion given the basis: M_f = W_f B_f^+ over the visible points, all frames
         Bs = B.transpose(1, 0, 2).reshape(3 * rank, P)               # (3K, P) rows (i, k)
         BV = Bs[None] * V[:, None, :]                                 # (F, 3K, P)
         G = BV @ Bs.T
-        G += (1e-9 * np.trace(G, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None, None] \
-            * np.eye(3 * rank)
-        M = np.linalg.solve(G, (BV @ Wf.transpose(0, 2, 1))).transpose(0, 2, 1)   # (F, 2, 3K)
+        mu = ((prox + 1e-9) * np.trace(G, axis1=1, axis2=2) / (3 * rank) + 1e-300)[:, None, None]
+        G += mu * np.eye(3 * rank)
+        Mcur = np.einsum('fk,fij->fjki', c, R2).reshape(F, 3 * rank, 2)       # rows (j, k)
+        M = np.linalg.solve(G, BV @ Wf.transpose(0, 2, 1) + mu * Mcur).transpose(0, 2, 1)
         # (2) metric projection, batched over frames
         R2, c = project_blocks(M.reshape(F, 2, 3, rank), R2)
         pred = np.einsum('fij,fk,kjp->fip', R2, c, B)
