@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .icp import RegistrationResult, check_points, normalise_pair
 
@@ -227,7 +228,6 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
     for it in range(1, max_iterations + 1):
         if knn:
             if (it - 1) % 5 == 0:
-                from scipy.spatial import cKDTree
                 pairs = cKDTree(TY).query(X, k=knn, workers=-1)[1].reshape(len(X), knn)
             P1, Pt1, PX = estep_pairs(X, TY, sigma2, w, pairs)
         else:
@@ -278,7 +278,6 @@ def cpd(source: np.ndarray, target: np.ndarray, kind: str = 'rigid', w: float = 
             assert nys is not None and Bf is not None
             TYall = Yn + nys.features(Yn) @ coef
     aligned = TYall * sc + cx
-    from scipy.spatial import cKDTree
     tree = cKDTree(X0)
     stages = [(refine_points, fine_iterations, sparse_knn, 1.0),
               (sparse_points, sparse_iterations, sparse_knn, 0.5)]
