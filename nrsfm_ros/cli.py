@@ -119,6 +119,13 @@ def _parser() -> argparse.ArgumentParser:
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6); hdsm: lifted dimension D '
                     '(default 9)')
+    rc.add_argument('--camera-model', choices=('auto', 'free', 'orbit'), default=None,
+                    help='bmm/cdf: per-frame cameras (free), their constant-rate orbit fit '
+                    '(orbit: turntable, orbiting rig, steady pan) or orbit when the per-frame '
+                    'rotations agree with it (auto, default)')
+    rc.add_argument('--smooth', type=float, default=None,
+                    help='bmm/cdf: weight of the trajectory prior on the shapes (second '
+                    'differences over frames; default 100 with orbit cameras, else 0)')
     rc.add_argument('--out', required=True)
 
     rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
@@ -444,11 +451,19 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     else:
         kw = {'rank': args.rank if args.rank is not None else
               (3 if args.method in ('lowrank', 'amp') else 0)}
+    for flag, key in (('--camera-model', 'camera_model'), ('--smooth', 'smooth')):
+        value = getattr(args, key)
+        if value is None:
+            continue
+        if args.method not in ('bmm', 'cdf'):
+            raise CliError(f'{flag} applies to --method bmm and cdf, not {args.method}')
+        kw[key] = value
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     extra = f', compression {res.compression:.1f}x' if res.compression != 1.0 else ''
-    print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, residual '
-          f'{res.residual_px:.3g} px{extra}, {res.seconds:.2f} s)')
+    print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, '
+          f'{res.camera_model} cameras, residual {res.residual_px:.3g} px{extra}, '
+          f'{res.seconds:.2f} s)')
     return 0
 
 

@@ -164,3 +164,26 @@ def test_reconstruct_va(tmp_path, capsys):
     assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'va', '--rank', '3',
                  '--out', str(tmp_path / 'v.npz')]) != 0
     assert '--rank does not apply' in capsys.readouterr().err
+
+
+def test_reconstruct_camera_model_flags(tmp_path, capsys):
+    from conftest import shared_data
+
+    from nrsfm_ros.core.metrics import e3d_normalized
+    d = np.load(shared_data('nrsfm', 'pickup.npz'))
+    np.savez(tmp_path / 'pickup.npz', W=d['W'])
+    errs = {}
+    for flags in ([], ['--camera-model', 'free'], ['--camera-model', 'orbit', '--smooth', '0']):
+        capsys.readouterr()
+        assert main(['reconstruct', str(tmp_path / 'pickup.npz'), '--out',
+                     str(tmp_path / 's.npz')] + flags) == 0
+        out = capsys.readouterr().out
+        assert ('free cameras' if 'free' in flags else 'orbit cameras') in out
+        r = np.load(tmp_path / 's.npz')
+        errs[' '.join(flags)] = e3d_normalized(np.einsum('fji,fpj->fpi', r['R'], r['S']),
+                                               d['S_world'])
+    # measured metric A: orbit + trajectory prior 0.029, orbit alone 0.053, free 0.11
+    assert errs[''] < 0.04 < errs['--camera-model orbit --smooth 0'] < errs['--camera-model free']
+    assert main(['reconstruct', str(tmp_path / 'pickup.npz'), '--method', 'rigid', '--smooth',
+                 '10', '--out', str(tmp_path / 'x.npz')]) != 0
+    assert '--smooth applies to --method bmm and cdf' in capsys.readouterr().err

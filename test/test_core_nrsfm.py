@@ -117,9 +117,10 @@ def test_bmm_handles_missing_entries_and_validates():
 
 
 # measured metric A (world frame for the Akhter sets) with the defaults, one parameter set for
-# all data; the issue's targets (drink 0.020, pickup 0.060, stretch 0.050) are not met yet.
-MOCAP_A = {'drink': 0.0459, 'pickup': 0.1106, 'stretch': 0.0869, 'face': 0.0261,
+# all data (drink/pickup/stretch: orbit cameras, chosen automatically; face/walking: free).
+MOCAP_A = {'drink': 0.0105, 'pickup': 0.0290, 'stretch': 0.0363, 'face': 0.0261,
            'walking': 0.1260}
+TARGET_A = {'drink': 0.020, 'pickup': 0.060, 'stretch': 0.050}     # issue 3
 
 
 @pytest.mark.parametrize('name', sorted(MOCAP_A))
@@ -131,9 +132,77 @@ def test_bmm_accuracy_on_mocap(name):
         if 'S_world' in d.files:
             return e3d_normalized(np.einsum('fji,fpj->fpi', res.R, res.S), d['S_world'])
         return e3d_normalized(res.S, d['S'])
-    err = metric_a(reconstruct(d['W'], method='bmm'))
+    res = reconstruct(d['W'], method='bmm')
+    err = metric_a(res)
     assert err <= MOCAP_A[name] * 1.05 + 1e-3
+    assert err <= TARGET_A.get(name, 1.0)
+    assert res.camera_model == ('orbit' if name in TARGET_A else 'free')
     assert err < metric_a(reconstruct(d['W'], method='rigid'))
+
+
+def test_trajectory_prior_with_known_cameras():
+    """The shapes' trajectory prior (second differences) on drink with the true cameras:
+    metric A 0.022 -> 0.008 (measured); the banded system equals the dense one."""
+    from conftest import shared_data
+    from scipy.linalg import solveh_banded
+    bmm_mod = __import__('sys').modules['nrsfm_ros.core.nrsfm.bmm']
+    F = 9
+    D = np.diff(np.eye(F), 2, axis=0)
+    b = np.arange(F, dtype=float) ** 2
+    ab = bmm_mod.second_difference_banded(F, 3.0, 0.5)
+    assert np.allclose(solveh_banded(ab, b), np.linalg.solve(3 * D.T @ D + 0.5 * np.eye(F), b))
+    d = np.load(shared_data('nrsfm', 'drink.npz'))
+    W, R2 = d['W'][:400], d['R'][:200, :2]
+    V = np.ones((200, W.shape[1]))
+    errs = [e3d_normalized(bmm_mod.bmm_shapes(W, V, R2, 0.01, 200, smooth=mu)[0]
+                           .transpose(0, 2, 1), d['S_world'][:200]) for mu in (0.0, 100.0)]
+    assert errs[1] < 0.6 * errs[0], errs
+
+
+def _orbit(F: int, rate_deg: float, seed: int = 0) -> np.ndarray:
+    axis = np.random.default_rng(seed).normal(size=3)
+    axis /= np.linalg.norm(axis)
+    step = Rotation.from_rotvec(np.radians(rate_deg) * axis)
+    R0 = Rotation.random(random_state=seed)
+    return np.stack([(step ** f * R0).as_matrix() for f in range(F)])
+
+
+def test_orbit_cameras_remove_slow_drift_and_reject_free_cameras():
+    bmm_mod = __import__('sys').modules['nrsfm_ros.core.nrsfm.bmm']
+    R = _orbit(200, 4.0)
+    Ro, dev, disp = bmm_mod.orbit_cameras(R)
+    assert np.abs(Ro - R).max() < 1e-9 and dev < 1e-6 and disp < 1e-6
+    # a slow 3-degree wobble (the gauge drift of per-frame estimates) is removed
+    R6 = _orbit(600, 4.0, seed=2)
+    f = np.arange(600)
+    wob = Rotation.from_rotvec(np.radians(3) * np.stack(
+        [np.sin(2 * np.pi * f / 60), np.cos(2 * np.pi * f / 45), 0 * f], 1)).as_matrix()
+    Ro, dev, disp = bmm_mod.orbit_cameras(wob @ R6)
+    err = np.degrees(Rotation.from_matrix(Ro @ R6.transpose(0, 2, 1)).magnitude())
+    assert err.mean() < 0.2 * dev and 1.5 < dev < 4 and disp < 0.1, (err.mean(), dev, disp)
+    f = np.arange(200)
+    # a free camera (the test sequences' sinusoidal angles) is far from any orbit
+    _, _, R_free = low_rank_sequence(K=1)
+    assert bmm_mod.orbit_cameras(R_free)[2] > 0.3
+    # the camera model of bmm: orbit sequence -> 'orbit', the free camera -> 'free'
+    rng = np.random.default_rng(1)
+    B = rng.normal(size=(2, 3, 60))
+    S_obj = B[0] + 0.2 * np.sin(f[:, None, None] / 15.0) * B[1]
+    W = np.einsum('fij,fjp->fip', R[:, :2], S_obj).reshape(400, 60)
+    W = W + rng.normal(scale=0.01, size=W.shape)
+    res = reconstruct(W, method='bmm')
+    assert res.camera_model == 'orbit'
+    assert reconstruct(W, method='bmm', camera_model='free').camera_model == 'free'
+    W2, _, _ = low_rank_sequence(K=2)
+    W2 = W2 + rng.normal(scale=0.01, size=W2.shape)
+    assert reconstruct(W2, method='bmm').camera_model == 'free'
+    assert reconstruct(W2, method='bmm', camera_model='orbit').camera_model == 'orbit'
+    for kw, match in (({'camera_model': 'tripod'}, 'camera_model'), ({'smooth': -1.0}, 'smooth'),
+                      ({'orbit_tolerance': -0.1}, 'orbit_tolerance')):
+        with pytest.raises(ValueError, match=match):
+            reconstruct(W, method='bmm', **kw)
+        with pytest.raises(ValueError, match=match):
+            reconstruct(W, method='cdf', **kw)
 
 
 def test_amp_exact_on_rigid_data_and_invariant_to_frame_order():

@@ -28,7 +28,8 @@ from dataclasses import replace
 import numpy as np
 
 from ..registration.cpd import Nystrom
-from .bmm import _gauge_rounds, averaged_rotations, bmm, bmm_shapes, noise_level
+from .bmm import (_gauge_rounds, averaged_rotations, bmm, bmm_shapes,
+                  check_camera_args, noise_level)
 from .factorization import _centre, complete_rotations
 from .result import NRSfMResult, check_tracks
 
@@ -78,11 +79,14 @@ def coherent_fill(W: np.ndarray, V: np.ndarray, beta: float = 0.5, lam: float = 
 
 def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: float = 0.01,
         lam_nuc: float = 4.0, landmarks: int = 300, iterations: int = 100,
-        gauge_rounds: int = 1, trace_weight: float = 1e-3, seed: int = 0) -> NRSfMResult:
+        gauge_rounds: int = 1, trace_weight: float = 1e-3, seed: int = 0,
+        camera_model: str = 'auto', smooth: float | None = None, orbit_tolerance: float = 0.1
+        ) -> NRSfMResult:
     """Coherent depth fields: coherent 2-D fill of occluded tracks, ``bmm`` cameras and shapes
     (visible data term, nuclear-norm weight ``lam_nuc`` x the noise level, Procrustean gauge),
     then coherent 3-D fields for the hidden points.  ``beta`` kernel width (reference RMS
-    radius units), ``lam`` ridge weight, ``landmarks`` Nystrom rank."""
+    radius units), ``lam`` ridge weight, ``landmarks`` Nystrom rank; ``camera_model``,
+    ``smooth``, ``orbit_tolerance`` as in ``bmm``."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     for name, v in (('beta', beta), ('lam', lam)):
@@ -91,11 +95,13 @@ def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: floa
     if lam_nuc < 0 or landmarks < 1 or iterations < 1 or gauge_rounds < 0:
         raise ValueError(f'lam_nuc={lam_nuc}, landmarks={landmarks}, iterations={iterations}, '
                          f'gauge_rounds={gauge_rounds}: expected >= 0, >= 1, >= 1, >= 0')
+    check_camera_args(camera_model, smooth, orbit_tolerance)
     F, P = V.shape
     vis = V >= 0.5
     if vis.all():        # nothing to fill: exactly bmm (incl. its exact low-rank path)
         res = bmm(W, V, lam=lam_nuc, iterations=iterations, trace_weight=trace_weight,
-                  gauge_rounds=gauge_rounds)
+                  gauge_rounds=gauge_rounds, camera_model=camera_model, smooth=smooth,
+                  orbit_tolerance=orbit_tolerance)
         return replace(res, method='cdf', seconds=time.perf_counter() - t0)
     X = coherent_fill(W, V, beta, lam, landmarks, seed)
     ones = np.ones_like(V)
@@ -104,7 +110,8 @@ def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: floa
     lam_abs = lam_nuc * max(noise_level(Xc), 1e-4)
     init = R2.transpose(0, 2, 1) @ Xc.reshape(F, 2, P)
     S, it, conv = bmm_shapes(Xc, V, R2, lam_abs, iterations, init=init)
-    R2, S = _gauge_rounds(Xc, V, R2, S, lam_abs, iterations, gauge_rounds)
+    R2, S, used = _gauge_rounds(Xc, V, R2, S, lam_abs, iterations, gauge_rounds,
+                                camera=(camera_model, smooth, orbit_tolerance))
     Sbar = (S * vis[:, None, :]).sum(0) / np.maximum(vis.sum(0), 1)
     Phi = _features(X.reshape(F, 2, P)[int(np.argmax(vis.sum(1)))].T, beta, landmarks, seed)
     C = field_fit(Phi, (S - Sbar[None]).transpose(0, 2, 1), vis, lam)
@@ -115,4 +122,4 @@ def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: floa
     resid = float((d * V).sum() / max(V.sum(), 1e-12))
     return NRSfMResult(S=np.einsum('fij,fjp->fpi', R, S), R=R, scale=np.ones(F), t=t,
                        method='cdf', rank=0, residual_px=resid, iterations=it, converged=conv,
-                       seconds=time.perf_counter() - t0)
+                       seconds=time.perf_counter() - t0, camera_model=used)

@@ -17,6 +17,8 @@ class NRSfMResult:
        W_f ~= scale_f * S_f[:, :2].T + t_f.
     compression: numbers of the full sequence (3FP) over those the method's model stores
        (``hdsm``); 1.0 for methods that store every shape.
+    camera_model: 'orbit' where the cameras were replaced by their constant-rate orbit fit
+       (``bmm``/``cdf`` with ``camera_model`` 'auto' or 'orbit'), else 'free' (per frame).
     """
 
     S: np.ndarray
@@ -30,6 +32,7 @@ class NRSfMResult:
     converged: bool
     seconds: float
     compression: float = 1.0
+    camera_model: str = 'free'
 
 
 def check_tracks(W: np.ndarray, V: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
