@@ -29,7 +29,7 @@ from nrsfm_ros.core.metrics import e3d_frobenius  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 from nrsfm_ros.io.synth import dense_tracks  # noqa: E402
 
-METHODS = ('rigid', 'lowrank', 'bmm', 'smsr', 'amp', 'cdf', 'va')
+METHODS = ('rigid', 'lowrank', 'bmm', 'smsr', 'amp', 'cdf', 'va', 'planar')
 FAST = ('bmm', 'smsr', 'amp', 'cdf')
 SIZES = (1_000, 3_000, 10_000, 30_000, 100_000)
 

@@ -114,7 +114,8 @@ def _parser() -> argparse.ArgumentParser:
                     'shapes), smsr (DCT-smoothed tracks), amp (metric projections) or cdf '
                     '(coherent depth fields: occluded tracks filled from visible neighbours) or '
                     'hdsm (lifted high-dimensional model; --rank is its dimension D, default 9) '
-                    'or va (Garg variational: cdf + spatial Huber-TV on the image grid)')
+                    'or va (Garg variational: cdf + spatial Huber-TV on the image grid) or '
+                    'planar (planar rest shape deforming out of its plane: cloth, paper, flag)')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6); hdsm: lifted dimension D '
@@ -442,7 +443,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(f'{path}: no array named W (keys: {d.files})')
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
-    if args.method in ('rigid', 'cdf', 'va'):
+    if args.method in ('rigid', 'cdf', 'va', 'planar'):
         if args.rank is not None:
             raise CliError(f'--rank does not apply to --method {args.method}')
         kw = {}

@@ -108,7 +108,7 @@ class ReconstructorParams(Params):
                      'window: sliding window re-solved per frame; online: the first window, '
                      'then each frame fitted alone to its shape basis; batch: whole batches')
     method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
-                                          'hdsm', 'va'),
+                                          'hdsm', 'va', 'planar'),
                        'NRSfM method (batch mode; bmm/smsr choose their motion rank)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')

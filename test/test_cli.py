@@ -187,3 +187,22 @@ def test_reconstruct_camera_model_flags(tmp_path, capsys):
     assert main(['reconstruct', str(tmp_path / 'pickup.npz'), '--method', 'rigid', '--smooth',
                  '10', '--out', str(tmp_path / 'x.npz')]) != 0
     assert '--smooth applies to --method bmm and cdf' in capsys.readouterr().err
+
+
+def test_reconstruct_every_method_on_tracks_with_visibility(tmp_path, capsys):
+    """`nrsfm-ros reconstruct --method M` works for every method on a W/V npz."""
+    sys.path.insert(0, str(__import__('pathlib').Path(__file__).parent))
+    from tests_helpers import low_rank_sequence
+
+    from nrsfm_ros.core.nrsfm import METHODS
+    W, S, _ = low_rank_sequence(K=2, F=24, P=90)
+    V = np.ones((24, 90))
+    V[6:10, :12] = 0
+    np.savez(tmp_path / 'tracks.npz', W=W, V=V)
+    for method in sorted(METHODS):
+        out = tmp_path / f'{method}.npz'
+        assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', method, '--out',
+                     str(out)]) == 0, method
+        r = np.load(out)
+        assert r['S'].shape == S.shape and np.isfinite(r['S']).all(), method
+        assert f'({method}, rank' in capsys.readouterr().out

@@ -428,3 +428,35 @@ def test_amp_keeps_its_initialisation_on_exact_low_rank_dense_data():
     assert res.residual_px < 0.5
     with pytest.raises(ValueError, match='prox'):
         amp(d['W'], prox=-1.0)
+
+
+def test_planar_exact_on_a_rigid_plane_and_accurate_on_the_flag():
+    """planar: exact cameras and shapes for a rigid plane; on the generated flag (planar rest
+    shape + travelling waves) metric B 0.015 clean / 0.033 with noise and a 30% occluded block
+    (measured at 2k points; issue 3 targets 0.03 / 0.05) where bmm and rigid are at 0.07-0.12;
+    a face-like surface is flagged as not planar (converged False)."""
+    from nrsfm_ros.io.synth import dense_tracks
+    rng = np.random.default_rng(4)
+    plane = np.concatenate([rng.uniform(-1, 1, (2, 400)), np.zeros((1, 400))])
+    R = Rotation.from_euler('yx', np.stack([np.radians(35) * np.sin(np.linspace(0, 3, 50)),
+                                            np.radians(25) * np.cos(np.linspace(0, 2, 50))],
+                                           1)).as_matrix()
+    W = np.einsum('fij,jp->fip', R[:, :2], plane).reshape(100, 400)
+    res = reconstruct(W, method='planar')
+    S = np.einsum('fij,jp->fpi', R, plane)
+    assert res.converged and e3d_frobenius(res.S, S, 'global') < 1e-6
+    d = dense_tracks('flag', 60, 2000, 'orthographic')
+    errs = {m: e3d_frobenius(reconstruct(d['W'], method=m).S, d['S'], 'frame', scale=True)
+            for m in ('planar', 'rigid', 'bmm')}
+    assert errs['planar'] < 0.02 and errs['planar'] < 0.3 * min(errs['rigid'], errs['bmm'])
+    V = np.ones((60, 2000))
+    V[20:40][:, d['W'][0] < np.quantile(d['W'][0], 0.3)] = 0
+    Wn = d['W'] + np.random.default_rng(0).normal(0, 1.0, d['W'].shape)
+    res = reconstruct(Wn, V, method='planar')
+    assert res.converged and e3d_frobenius(res.S, d['S'], 'frame', scale=True) < 0.045
+    face = dense_tracks('face', 30, 1000, 'orthographic')
+    assert not reconstruct(face['W'], method='planar').converged
+    with pytest.raises(ValueError, match='beta'):
+        reconstruct(W, method='planar', beta=0.0)
+    with pytest.raises(ValueError, match='at least 3 frames'):
+        reconstruct(W[:4], method='planar')

@@ -12,6 +12,7 @@ from .cdf import cdf
 from .hdsm import hdsm
 from .factorization import low_rank, rigid
 from .online import OnlineNRSfM
+from .planar import planar
 from .va import va
 from .result import NRSfMResult, check_tracks
 from .window import WindowNRSfM
@@ -25,6 +26,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'cdf': cdf,
     'hdsm': hdsm,
     'va': va,
+    'planar': planar,
 }
 
 
