@@ -107,9 +107,10 @@ class ReconstructorParams(Params):
     mode: str = rule('window', _one_of('window', 'batch', 'online'),
                      'window: sliding window re-solved per frame; online: the first window, '
                      'then each frame fitted alone to its shape basis; batch: whole batches')
-    method: str = rule('lowrank', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
-                                          'hdsm', 'va', 'planar'),
-                       'NRSfM method (batch mode; bmm/smsr choose their motion rank)')
+    method: str = rule('bmm', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
+                                      'hdsm', 'va', 'planar'),
+                       'NRSfM method in batch mode (bmm/smsr choose their motion rank; window '
+                       'and online modes always run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')

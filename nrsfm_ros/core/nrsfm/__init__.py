@@ -30,9 +30,10 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
 }
 
 
-def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'lowrank',
+def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'bmm',
                 **params: Any) -> NRSfMResult:
-    """Run the named method on tracks W (2F, P) with optional visibility V (F, P)."""
+    """Run the named method (default ``bmm``, as the CLI) on tracks W (2F, P) with optional
+    visibility V (F, P)."""
     if method not in METHODS:
         raise ValueError(f'method={method!r}: expected one of {sorted(METHODS)}')
     return METHODS[method](W, V, **params)
