@@ -1,1 +1,18 @@
 """rclpy nodes: thin wrappers of the processors in nrsfm_ros.processing."""
+from __future__ import annotations
+
+import os
+import signal
+
+# A node process started by the launcher (live.Graph sets this) that is stopped with Ctrl-C
+# while it is still importing exits cleanly (code 0) instead of with a KeyboardInterrupt
+# traceback; spin_node restores the default handler before rclpy takes over.
+LAUNCHED_ENV = 'NRSFM_NODE_PROCESS'
+
+
+def _stop_during_startup(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
+if os.environ.get(LAUNCHED_ENV) == '1':
+    signal.signal(signal.SIGINT, _stop_during_startup)

@@ -1,6 +1,7 @@
 """Shared node plumbing: parameters with on-set validation, QoS, diagnostics, error counting."""
 from __future__ import annotations
 
+import signal
 from dataclasses import fields
 from typing import Any
 
@@ -93,9 +94,10 @@ class ProcessorNode(Node):
 
 def spin_node(make: Any, args: list[str] | None = None) -> int:
     """The idiomatic main: init, spin, clean shutdown on Ctrl-C or external shutdown."""
-    rclpy.init(args=args)
+    signal.signal(signal.SIGINT, signal.default_int_handler)   # see nodes/__init__.py
     node = None
     try:
+        rclpy.init(args=args)
         node = make()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
