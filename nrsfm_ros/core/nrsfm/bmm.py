@@ -124,7 +124,11 @@ def dai_rotations(Wc: np.ndarray, V: np.ndarray, K: int, trace_weight: float = 1
         raise ValueError(f'rank={K}: the motion factorisation needs 9K <= 2F + 1 and '
                          f'3K <= min(2F, P) (F={F}, P={P})')
     X = impute_low_rank(Wc, V, 3 * K) if (V < 0.5).any() else Wc
-    U, s, _ = np.linalg.svd(X, full_matrices=False)
+    if X.shape[1] > X.shape[0]:          # wide (dense tracks): the 2F x 2F Gram matrix
+        lam, U = np.linalg.eigh(X @ X.T)
+        U, s = U[:, ::-1], np.sqrt(np.maximum(lam[::-1], 0.0))
+    else:
+        U, s, _ = np.linalg.svd(X, full_matrices=False)
     r = min(3 * K, s.size)
     Phat = U[:, :r] * np.sqrt(s[:r])
     Phat = Phat / np.sqrt(np.mean(Phat ** 2))        # unit scale helps the conditioning
@@ -233,15 +237,23 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     evV = ev[:, :, None] * V[:, None, :]
     it, converged = 0, False
     for it in range(1, iterations + 1):
-        rhs = RtW + rho * Z - U
+        rhs = rho * Z
+        rhs -= U
+        rhs += RtW
         if use_y:
-            rhs += rho * Y - U2
-        coef = (Et @ rhs) / ((2 if use_y else 1) * rho + evV)
+            rhs += rho * Y
+            rhs -= U2
+        coef = Et @ rhs
+        coef /= (2 if use_y else 1) * rho + evV
         S = E @ coef
-        Zn = _svt((S + U / rho).reshape(F, 3 * P), tau / rho).reshape(F, 3, P)
-        U = U + rho * (S - Zn)
-        r_primal = np.linalg.norm(S - Zn)
-        r_dual = rho * np.linalg.norm(Zn - Z)
+        T = U / rho
+        T += S
+        Zn = _svt(T.reshape(F, 3 * P), tau / rho).reshape(F, 3, P)
+        D = np.subtract(S, Zn, out=T)
+        r_primal = np.linalg.norm(D)
+        D *= rho
+        U += D
+        r_dual = rho * np.linalg.norm(np.subtract(Zn, Z, out=D))
         if use_y:
             ab = second_difference_banded(F, smooth, rho)
             Yn = solveh_banded(ab, (rho * S + U2).reshape(F, 3 * P)).reshape(F, 3, P)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..registration.cpd import Nystrom
 from .bmm import (_gauge_rounds, averaged_rotations, bmm, bmm_shapes,
-                  check_camera_args, noise_level)
+                  check_camera_args, noise_level, row_space)
 from .factorization import _centre, complete_rotations
 from .result import NRSfMResult, check_tracks
 
@@ -106,7 +106,8 @@ def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: floa
     X = coherent_fill(W, V, beta, lam, landmarks, seed)
     ones = np.ones_like(V)
     Xc, t = _centre(X, ones)
-    R2 = averaged_rotations(Xc, ones, trace_weight=trace_weight)
+    Xr = row_space(Xc)[0]       # the cameras see only the column space: 2F x r, not 2F x P
+    R2 = averaged_rotations(Xr, np.ones((F, Xr.shape[1])), trace_weight=trace_weight)
     lam_abs = lam_nuc * max(noise_level(Xc), 1e-4)
     init = R2.transpose(0, 2, 1) @ Xc.reshape(F, 2, P)
     S, it, conv = bmm_shapes(Xc, V, R2, lam_abs, iterations, init=init)
