@@ -233,6 +233,7 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     use_y = smooth > 0 and F >= 3
     Y, U2 = (S.copy(), np.zeros_like(S)) if use_y else (None, None)
     tau = lam * np.sqrt(P)
+    ab0 = second_difference_banded(F, smooth, 0.0) if use_y else None
     Et = np.ascontiguousarray(E.transpose(0, 2, 1))
     evV = ev[:, :, None] * V[:, None, :]
     it, converged = 0, False
@@ -255,7 +256,8 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
         U += D
         r_dual = rho * np.linalg.norm(np.subtract(Zn, Z, out=D))
         if use_y:
-            ab = second_difference_banded(F, smooth, rho)
+            ab = ab0.copy()
+            ab[2] += rho
             Yn = solveh_banded(ab, (rho * S + U2).reshape(F, 3 * P)).reshape(F, 3, P)
             U2 = U2 + rho * (S - Yn)
             r_primal = max(r_primal, float(np.linalg.norm(S - Yn)))
