@@ -102,8 +102,11 @@ class Graph:
                     return 1 if bad or dead else 0
                 time.sleep(0.2)
         except KeyboardInterrupt:
-            codes = self.stop()
-            return 0 if all(c in (0, -signal.SIGINT, 130) for c in codes.values()) else 1
+            codes = self.stop(timeout=10.0)     # a node still starting on a loaded machine
+            bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT, 130)}
+            for n, c in bad.items():
+                sys.stderr.write(f'error: node {n} exited with code {c} on Ctrl-C\n')
+            return 1 if bad else 0
 
 
 # ------------------------------------------------------------------ record / replay

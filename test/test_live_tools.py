@@ -63,11 +63,12 @@ def test_graph_launcher_stops_cleanly_and_reports_dead_nodes():
     p.send_signal(signal.SIGINT)
     assert p.wait(15) == 0
     p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes',
-                          'scene_flow,registrar'], env=dict(os.environ))
+                          'scene_flow,registrar'], env=dict(os.environ), stderr=subprocess.PIPE,
+                         text=True)
     time.sleep(3.0)
     assert p.poll() is None
     p.send_signal(signal.SIGINT)
-    assert p.wait(15) == 0
+    assert p.wait(20) == 0, p.stderr.read()[-2000:]
     p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes', 'scene_flow'],
                          env=dict(os.environ))
     time.sleep(3.0)
