@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from .io.bag import LATCHED_TOPICS, BagWriter, read_messages
+from .nodes import LAUNCHED_ENV
 
 NODES = ('tracker', 'reconstructor', 'registrar', 'scene_flow')
 
@@ -56,7 +57,7 @@ class Graph:
                  overrides: dict[str, dict[str, Any]] | None = None, quiet: bool = False
                  ) -> None:
         env = ensure_loopback_env(dict(os.environ))
-        env['NRSFM_NODE_PROCESS'] = '1'       # nodes/__init__.py: Ctrl-C at startup exits 0
+        env[LAUNCHED_ENV] = '1'       # nodes/__init__.py: Ctrl-C at startup exits 0
         params_dir = params_dir or package_root() / 'config'
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         for name in nodes:
