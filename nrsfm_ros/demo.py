@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .core.metrics import e3d_frobenius, relative_epe, rotation_error_deg
+from .core.metrics import relative_epe, rotation_error_deg, score_stream
 from .io import pointcloud2 as pc2
 from .io.bag import deserialize, read_messages
 from .io.export import render_png, write_ply
@@ -26,7 +26,8 @@ from .processing import TOPICS, transform_matrix
 
 OUTPUTS = {TOPICS[k]: t for k, t in [
     ('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image'),
-    ('points', 'sensor_msgs/msg/PointCloud2'), ('aligned', 'sensor_msgs/msg/PointCloud2'),
+    ('points', 'sensor_msgs/msg/PointCloud2'), ('nrsfm_depth', 'sensor_msgs/msg/Image'),
+    ('aligned', 'sensor_msgs/msg/PointCloud2'),
     ('transform', 'geometry_msgs/msg/TransformStamped'),
     ('displacement', 'sensor_msgs/msg/PointCloud2'),
     ('scene_flow', 'sensor_msgs/msg/PointCloud2'),
@@ -104,7 +105,8 @@ def run_live(bag: Path, out_bag: Path, frames: int, rate: float, timeout: float,
         t0 = time.monotonic()
         result['replayed'] = replay(node, bag, rate=rate,
                                     wait_subscribers={'camera/image_raw': 1})
-        expect = {TOPICS['points']: frames, TOPICS['aligned']: frames,
+        expect = {TOPICS['points']: frames, TOPICS['nrsfm_depth']: frames,
+                  TOPICS['aligned']: frames,
                   TOPICS['scene_flow']: frames, TOPICS['tracks']: frames}
         end = time.monotonic() + timeout
         while time.monotonic() < end and not graph.poll():
@@ -167,16 +169,18 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
                     latency[st.hardware_id] = float(vals['latency_ms'])
     summary: dict[str, Any] = {'frames_in': int(seq.S.shape[0]), 'outputs': counts}
     if recon:
-        frames = sorted(recon)
-        ids = recon[frames[0]][1]
-        cols = np.array([id_index.get(int(i), -1) for i in ids])
-        keep = cols >= 0
-        S = np.stack([recon[f][0][keep] for f in frames])
-        S_gt = seq.S[frames][:, cols[keep]]
-        summary['e3d_B_frame'] = e3d_frobenius(S, S_gt, 'frame')
-        summary['e3d_B_frame_scaled'] = e3d_frobenius(S, S_gt, 'frame', scale=True)
-        summary['points_per_frame'] = int(ids.size)
+        score = score_stream({f: (X, ids) for f, (X, ids, _) in recon.items()},
+                             seq.track_ids, seq.S)
+        sm = score.summary()
+        summary['e3d_B_frame_scaled'] = sm['e3d']
+        summary['e3d_static_oracle'] = sm['static']
+        summary['e3d_flat_plane'] = sm['flat']
+        summary['frames_scored'] = sm['frames_scored']
+        summary['frames_unscored'] = sm['unscored']
+        summary['points_per_frame'] = int(round(np.mean([r[1].size for r in recon.values()])))
+        summary['points_matched_per_frame'] = sm['points_matched_mean']
         out_dir.mkdir(parents=True, exist_ok=True)
+        frames = sorted(recon)
         for f in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
             X, _, rgb = recon[f]
             write_ply(out_dir / f'points_{f:03d}.ply', X, rgb)
@@ -209,15 +213,19 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
 
 def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str:
     rows = [('frames in (camera/image_raw)', str(s['frames_in']))]
-    for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['aligned'], TOPICS['transform'],
-                  TOPICS['displacement'], TOPICS['scene_flow'], TOPICS['markers'],
+    for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['nrsfm_depth'], TOPICS['aligned'],
+                  TOPICS['transform'], TOPICS['displacement'], TOPICS['scene_flow'], TOPICS['markers'],
                   TOPICS['flow']):
         rows.append((f'frames out ({topic})', str(s['outputs'].get(topic, 0))))
-    if 'e3d_B_frame' in s:
-        rows.append(('points per frame', str(s['points_per_frame'])))
-        rows.append(('e3D metric B, per-frame Procrustes', f"{s['e3d_B_frame']:.4f}"))
+    if 'e3d_B_frame_scaled' in s:
+        rows.append(('points per frame (matched to ground truth)',
+                     f"{s['points_per_frame']} ({s['points_matched_per_frame']:.0f})"))
+        rows.append(('frames scored', f"{s['frames_scored']} of {s['frames_in']}"))
         rows.append(('e3D metric B, per-frame Procrustes + scale',
                      f"{s['e3d_B_frame_scaled']:.4f}"))
+        rows.append(('  static oracle (frame 0 repeated), same frames',
+                     f"{s['e3d_static_oracle']:.4f}"))
+        rows.append(('  flat plane, same frames', f"{s['e3d_flat_plane']:.4f}"))
     if 'registration_rmse_m' in s:
         rows.append(('registration RMSE to reference (m)', f"{s['registration_rmse_m']:.4f}"))
     if 'registration_rotation_error_deg_median' in s:

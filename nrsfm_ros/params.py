@@ -107,18 +107,24 @@ class ReconstructorParams(Params):
     mode: str = rule('window', _one_of('window', 'batch', 'online'),
                      'window: sliding window re-solved per frame; online: the first window, '
                      'then each frame fitted alone to its shape basis; batch: whole batches')
-    method: str = rule('bmm', _one_of('lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
-                                      'hdsm', 'va', 'planar'),
-                       'NRSfM method in batch mode (bmm/smsr choose their motion rank; window '
-                       'and online modes always run the rank-K alternation)')
+    method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
+                                       'hdsm', 'va', 'planar'),
+                       'NRSfM method in batch mode (auto: planar when the rest shape tests '
+                       'planar, else bmm; window and online modes run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
-    mean_depth: float = rule(4.0, _positive, 'distance to the surface (m) for metric output')
+    mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
+                             'scale of the metric output, which one camera cannot observe')
+    publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '
+                               'surface; needs CameraInfo or focal_length_px)')
     focal_length_px: float = rule(0.0, _non_negative,
                                   'fx when no CameraInfo arrives (0: output '
                                   'stays in orthographic image units)')
+    idle_flush_s: float = rule(2.0, _non_negative, 'live: publish the frames still pending '
+                               '(a window or batch not yet full) after this long without tracks '
+                               '(0: never)')
     reliable: bool = rule(True, None, 'reliable QoS on the tracks input')
 
 

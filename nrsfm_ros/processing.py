@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .core.nrsfm import OnlineNRSfM, WindowNRSfM, reconstruct
+from .core.nrsfm.stream import StreamNRSfM, StreamShape
+from .core.depth import depth_image
 from .core.registration import register
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
@@ -34,6 +35,7 @@ TOPICS = {
     'image': 'camera/image_raw', 'image_compressed': 'camera/image_raw/compressed',
     'camera_info': 'camera/camera_info', 'depth': 'camera/depth/image_raw',
     'tracks': 'nrsfm/tracks', 'flow': 'nrsfm/flow', 'points': 'nrsfm/points',
+    'nrsfm_depth': 'nrsfm/depth',
     'reference': 'registration/reference', 'aligned': 'registration/aligned',
     'transform': 'registration/transform', 'displacement': 'registration/displacement',
     'scene_flow': 'scene_flow/points', 'markers': 'scene_flow/markers',
@@ -152,22 +154,25 @@ class TrackerProcessor(Processor):
         return out
 
 
-def to_metric(S: np.ndarray, scale: float, t: np.ndarray, K: np.ndarray | None,
-              mean_depth: float) -> np.ndarray:
-    """Orthographic shape (P, 3) in image units -> camera optical frame in metres by
-    weak-perspective back-projection at ``mean_depth``; without K the image units stay."""
-    pix = S * scale
+def to_metric(X: np.ndarray, t: np.ndarray, K: np.ndarray | None, mean_depth: float
+              ) -> np.ndarray:
+    """Shape X (P, 3) in image units (camera frame, centred on the image point ``t``) -> camera
+    optical frame in metres by weak-perspective back-projection with the centroid at
+    ``mean_depth`` (monocular reconstruction fixes shape up to one global scale: this is the
+    stream's gauge); without K the image units stay."""
     if K is None:
-        return pix
+        return X + np.array([t[0], t[1], 0.0])
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    x = (pix[:, 0] + t[0] - cx) * mean_depth / fx
-    y = (pix[:, 1] + t[1] - cy) * mean_depth / fy
-    z = mean_depth + pix[:, 2] * mean_depth / fx
+    x = (X[:, 0] + t[0] - cx) * mean_depth / fx
+    y = (X[:, 1] + t[1] - cy) * mean_depth / fy
+    z = mean_depth + X[:, 2] * mean_depth / fx
     return np.stack([x, y, z], axis=1)
 
 
 class ReconstructorProcessor(Processor):
-    """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id), one cloud per tracks message."""
+    """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id) + nrsfm/depth (32FC1 metres, NaN
+    off the surface), one of each per tracks message (the first window's frames come out
+    together once it is full; ``flush`` publishes whatever is pending at the end of a stream)."""
 
     name = 'reconstructor'
     params_cls = ReconstructorParams
@@ -175,16 +180,16 @@ class ReconstructorProcessor(Processor):
     def __init__(self, factory: MsgFactory, params: ReconstructorParams | None = None) -> None:
         super().__init__(factory, params)
         self.K: np.ndarray | None = None
+        self.image_size: tuple[int, int] | None = None
         self._reset()
 
     def _reset(self) -> None:
         p = self.params
-        self.window: WindowNRSfM | OnlineNRSfM = \
-            OnlineNRSfM(window=p.window, rank=p.rank, iterations=p.iterations) \
-            if p.mode == 'online' else \
-            WindowNRSfM(window=p.window, rank=p.rank, iterations=p.iterations)
-        self._pending: deque[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = deque()
-        self._ids: np.ndarray | None = None
+        self.stream = StreamNRSfM(mode=p.mode, window=p.window, rank=p.rank,
+                                  iterations=p.iterations, method=p.method,
+                                  batch_frames=p.batch_frames)
+        self._pending: dict[int, tuple[int, str, np.ndarray, np.ndarray]] = {}
+        self._rgb: dict[int, float] = {}
 
     def set_params(self, params: ReconstructorParams) -> None:
         self.params = params
@@ -192,6 +197,8 @@ class ReconstructorProcessor(Processor):
 
     def on_camera_info(self, msg: Any) -> list[Output]:
         self.K = img_io.camera_info_K(msg)
+        w, h = int(msg.width), int(msg.height)
+        self.image_size = (h, w) if w > 0 and h > 0 else None
         return []
 
     def _intrinsics(self) -> np.ndarray | None:
@@ -210,53 +217,50 @@ class ReconstructorProcessor(Processor):
             else np.zeros(ids.size, np.float32)
         if ids.size < 4:
             raise MessageError('width', ids.size, 'need at least 4 tracks to reconstruct')
-        if not np.isfinite(cols[:, :2]).all() and np.isfinite(cols[:, :2]).sum() < 8:
-            raise MessageError('u/v', 'non-finite', 'no finite track positions')
-        if self._ids is not None and not np.array_equal(ids, self._ids):
-            self._reset()  # new reference: the track set changed
-        self._ids = ids
-        vis = np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0)
-        uv = np.nan_to_num(cols[:, :2])
-        self._pending.append((stamp_ns(msg.header), str(msg.header.frame_id), uv, vis, rgb))
-        if self.params.mode in ('window', 'online'):
-            shapes = [(fs.S, fs.scale, fs.t) for fs in self.window.push(uv, vis)]
-        else:
-            shapes = self._batch()
-        return self._emit(shapes, ids)
+        if np.unique(ids).size != ids.size:
+            raise MessageError('track_id', int(ids.size - np.unique(ids).size),
+                               'duplicated track ids in one cloud')
+        finite = np.isfinite(cols[:, :2]).all(axis=1)
+        if finite.sum() < 4:
+            raise MessageError('u/v', 'non-finite', 'fewer than 4 finite track positions')
+        vis = np.where(finite, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
+        uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
+        index = self.stream.frames_seen
+        self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv, vis)
+        new = ~np.isin(ids, np.fromiter(self._rgb, np.int64, len(self._rgb))) if self._rgb \
+            else np.ones(ids.size, bool)
+        self._rgb.update(zip(ids[new].tolist(), rgb[new].tolist()))
+        return self._emit(self.stream.push(ids, uv, vis))
 
-    def _emit(self, shapes: list[tuple[np.ndarray, float, np.ndarray]], ids: np.ndarray
-              ) -> list[Output]:
-        """One nrsfm/points cloud per shape, for the oldest pending frames."""
+    def _emit(self, shapes: list[StreamShape]) -> list[Output]:
+        """One nrsfm/points cloud and one nrsfm/depth image per shape."""
         out: list[Output] = []
         K = self._intrinsics()
-        for S, scale, t in shapes:
-            stamp, frame, _, _, rgb_f = self._pending.popleft()
-            X = to_metric(S, scale, t, K, self.params.mean_depth).astype(np.float32)
-            cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb_f,
+        for sh in shapes:
+            stamp, frame, uv_all, _ = self._pending.pop(sh.index)
+            X = to_metric(sh.X, sh.t, K, self.params.mean_depth).astype(np.float32)
+            ids = sh.ids.astype(np.uint32)
+            rgb = np.array([self._rgb.get(int(i), 0.0) for i in sh.ids], np.float32)
+            cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb,
                                 'track_id': ids}, self.factory, stamp, frame)
             out.append((TOPICS['points'], PC2, cloud))
+            if K is not None and self.params.publish_depth:
+                size = self.image_size or _size_from(uv_all)
+                uv = sh.X[:, :2] + sh.t
+                depth = depth_image(uv, X[:, 2], size)
+                out.append((TOPICS['nrsfm_depth'], IMAGE,
+                            img_io.array_to_image(depth, '32FC1', self.factory, stamp, frame)))
         return out
 
-    def _batch(self) -> list[tuple[np.ndarray, float, np.ndarray]]:
-        if len(self._pending) < self.params.batch_frames:
-            return []
-        W = np.concatenate([p[2].T for p in self._pending], axis=0)
-        V = np.maximum(np.stack([p[3] for p in self._pending]), 1e-3)
-        kw = {'rank': self.params.rank} if self.params.method in ('lowrank', 'amp') else {}
-        res = reconstruct(W, V, method=self.params.method, **kw)
-        return [(res.S[f], float(res.scale[f]), res.t[f]) for f in range(res.S.shape[0])]
-
     def flush(self) -> list[Output]:
-        """End of an offline stream in batch mode: reconstruct what is pending (>= 3 frames)."""
-        if self.params.mode != 'batch' or len(self._pending) < 3 or self._ids is None:
-            return []
-        saved = self.params
-        self.params = self.params.updated({'batch_frames': len(self._pending)})
-        try:
-            shapes = self._batch()
-        finally:
-            self.params = saved
-        return self._emit(shapes, self._ids)
+        """End of an offline stream: a shape for every frame still pending."""
+        return self._emit(self.stream.flush())
+
+
+def _size_from(uv: np.ndarray) -> tuple[int, int]:
+    """Image (height, width) covering the track positions (without CameraInfo)."""
+    w, h = np.ceil(np.nanmax(uv, axis=0) + 1).astype(int)
+    return int(max(h, 1)), int(max(w, 1))
 
 
 class RegistrarProcessor(Processor):

@@ -10,6 +10,8 @@ says which one it uses:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -121,3 +123,83 @@ def track_error_px(W: np.ndarray, W_gt: np.ndarray, V: np.ndarray | None = None)
         m = np.asarray(V) > 0.5
         return float(d[m].mean()) if m.any() else float('nan')
     return float(d.mean())
+
+
+def frame_e3d(X: np.ndarray, X_gt: np.ndarray, scale: bool = True) -> float:
+    """Metric B of one frame: ||X - X_gt||_F / ||X_gt||_F after centring and orthogonal
+    Procrustes (reflection allowed; ``scale`` also fits a scale).  X, X_gt (P, 3)."""
+    X = np.asarray(X, dtype=np.float64)
+    X_gt = np.asarray(X_gt, dtype=np.float64)
+    if X.shape != X_gt.shape or X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f'X: expected shape (P, 3) equal to X_gt {X_gt.shape}, got {X.shape}')
+    return e3d_frobenius(X[None], X_gt[None], 'frame', scale=scale)
+
+
+def flat_shape(X: np.ndarray) -> np.ndarray:
+    """The points X (P, 3) projected onto their least-squares plane (the flat baseline)."""
+    X = np.asarray(X, dtype=np.float64)
+    c = X.mean(axis=0)
+    n = np.linalg.svd(X - c, full_matrices=False)[2][2]
+    return X - np.outer((X - c) @ n, n)
+
+
+@dataclass(frozen=True)
+class StreamScore:
+    """Per-frame metric B of a published stream against ground truth, with the baselines
+    scored on exactly the same frames and points.
+
+    ``e3d``, ``static``, ``flat`` (F,): NaN for frames that were not scored; ``unscored``: the
+    frames without a cloud or with fewer than ``min_points`` points matched to ground truth
+    (they are listed, never scored as 0)."""
+
+    e3d: np.ndarray
+    static: np.ndarray
+    flat: np.ndarray
+    matched: np.ndarray
+    unscored: list[int]
+
+    def summary(self) -> dict[str, float | int | list[int]]:
+        ok = np.isfinite(self.e3d)
+        mean = (lambda a: float(np.mean(a[ok])) if ok.any() else float('nan'))
+        return {'frames': int(self.e3d.size), 'frames_scored': int(ok.sum()),
+                'unscored': list(self.unscored), 'e3d': mean(self.e3d),
+                'static': mean(self.static), 'flat': mean(self.flat),
+                'ratio_static': mean(self.e3d) / max(mean(self.static), 1e-300),
+                'points_matched_mean': float(self.matched[ok].mean()) if ok.any() else 0.0}
+
+
+def score_stream(clouds: dict[int, tuple[np.ndarray, np.ndarray]], gt_ids: np.ndarray,
+                 S_gt: np.ndarray, min_points: int = 10, scale: bool = True) -> StreamScore:
+    """Score clouds ``{frame: (X (n, 3), ids (n,))}`` against ground truth ``S_gt`` (F, P, 3)
+    whose columns carry the track ids ``gt_ids`` (P,).  Points are matched by id; non-finite
+    points and ids absent from the ground truth are left out; a frame with fewer than
+    ``min_points`` matches is unscored.  Baselines on the same points: the static oracle (the
+    ground truth of frame 0 repeated) and the flat plane (frame 0 flattened onto its plane)."""
+    S_gt = np.asarray(S_gt, dtype=np.float64)
+    F = S_gt.shape[0]
+    gt_ids = np.asarray(gt_ids).astype(np.int64)
+    if gt_ids.shape != (S_gt.shape[1],):
+        raise ValueError(f'gt_ids: expected shape ({S_gt.shape[1]},), got {gt_ids.shape}')
+    order = np.argsort(gt_ids)
+    sorted_ids = gt_ids[order]
+    flat0 = flat_shape(S_gt[0])
+    e3d, static, flat = (np.full(F, np.nan) for _ in range(3))
+    matched = np.zeros(F, np.int64)
+    unscored = []
+    for f in range(F):
+        if f not in clouds:
+            unscored.append(f)
+            continue
+        X, ids = clouds[f]
+        ids = np.asarray(ids).astype(np.int64)
+        pos = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
+        ok = (sorted_ids[pos] == ids) & np.isfinite(X).all(axis=1)
+        cols = order[pos[ok]]
+        matched[f] = cols.size
+        if cols.size < min_points:
+            unscored.append(f)
+            continue
+        e3d[f] = frame_e3d(X[ok], S_gt[f, cols], scale)
+        static[f] = frame_e3d(S_gt[0, cols], S_gt[f, cols], scale)
+        flat[f] = frame_e3d(flat0[cols], S_gt[f, cols], scale)
+    return StreamScore(e3d, static, flat, matched, unscored)

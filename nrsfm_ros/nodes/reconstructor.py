@@ -1,7 +1,8 @@
-"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points."""
+"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points + nrsfm/depth."""
 from __future__ import annotations
 
 import sys
+import time
 
 from ..processing import ReconstructorProcessor
 from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
@@ -10,10 +11,26 @@ from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
 class ReconstructorNode(ProcessorNode):
     def __init__(self) -> None:
         super().__init__('reconstructor', ReconstructorProcessor,
-                         [('points', 'sensor_msgs/msg/PointCloud2')])
+                         [('points', 'sensor_msgs/msg/PointCloud2'),
+                          ('nrsfm_depth', 'sensor_msgs/msg/Image')])
         qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('tracks', 'sensor_msgs/msg/PointCloud2', qos)
         self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
+        self._last_tracks = time.monotonic()
+        self.create_timer(0.25, self._flush_when_idle)
+
+    def _on_message(self, kind: str, msg: object) -> None:
+        if kind == 'tracks':
+            self._last_tracks = time.monotonic()
+        super()._on_message(kind, msg)
+
+    def _flush_when_idle(self) -> None:
+        """A stream that stopped before its window (or batch) filled still gets its clouds."""
+        idle = self.processor.params.idle_flush_s
+        if idle > 0 and time.monotonic() - self._last_tracks >= idle:
+            assert isinstance(self.processor, ReconstructorProcessor)
+            for topic, msgtype, out in self.processor.flush():
+                self.publisher(topic, msgtype).publish(out)
 
 
 def main(args: list[str] | None = None) -> int:

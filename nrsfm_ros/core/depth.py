@@ -1,0 +1,47 @@
+"""Depth image of a reconstructed track set (the reconstructor's ``nrsfm/depth``)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def depth_image(uv: np.ndarray, z: np.ndarray, size: tuple[int, int],
+                spacing: float | None = None) -> np.ndarray:
+    """Depth (H, W) float32, NaN off the surface, from tracks at image positions ``uv`` (P, 2)
+    with depths ``z`` (P,).
+
+    Each track is splatted to its nearest pixel (the nearest depth wins where tracks share a
+    pixel); the surface is the closing of the splats by a disc of the track ``spacing`` (px;
+    default from the track density), and each of its pixels gets the normalised-convolution
+    average of the splatted depths within that disc.  O(H W) with OpenCV, a few ms at 320x240.
+    """
+    h, w = size
+    uv = np.asarray(uv, np.float64)
+    z = np.asarray(z, np.float64)
+    if uv.shape != (z.size, 2):
+        raise ValueError(f'uv: expected shape ({z.size}, 2), got {uv.shape}')
+    out = np.full((h, w), np.nan, np.float32)
+    xi = np.rint(uv[:, 0]).astype(np.int64, copy=False) if z.size else np.zeros(0, np.int64)
+    yi = np.rint(uv[:, 1]).astype(np.int64, copy=False) if z.size else np.zeros(0, np.int64)
+    ok = np.isfinite(uv).all(axis=1) & np.isfinite(z) & (xi >= 0) & (xi < w) & (yi >= 0) \
+        & (yi < h)
+    if ok.sum() < 3:
+        return out
+    xi, yi, zk = xi[ok], yi[ok], z[ok]
+    if spacing is None:
+        span = np.ptp(uv[ok], axis=0) + 1.0
+        spacing = float(np.sqrt(span[0] * span[1] / ok.sum()))
+    r = int(np.clip(np.ceil(spacing), 1, max(h, w)))
+    splat = np.full(h * w, np.inf)
+    np.minimum.at(splat, yi * w + xi, zk)
+    hit = np.isfinite(splat)
+    mask = hit.reshape(h, w).astype(np.uint8)
+    val = np.where(hit, splat, 0.0).reshape(h, w).astype(np.float32)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    surface = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel).astype(bool)
+    k = kernel.astype(np.float32)
+    num = cv2.filter2D(val, -1, k, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.filter2D(mask.astype(np.float32), -1, k, borderType=cv2.BORDER_CONSTANT)
+    fill = surface & (den > 0)
+    out[fill] = num[fill] / den[fill]
+    return out

@@ -1,0 +1,304 @@
+"""Streaming NRSfM keyed by track id: one shape per input frame, one gauge for the stream.
+
+The tracker's track set changes over a stream (a reference re-selection carries the visible
+tracks with their ids and adds new ones), so frames are stored as (ids, uv, visibility) and every
+solve runs on the union of the ids of its frames, a track absent from a frame being invisible
+there.  Modes (the reconstructor's ``mode``):
+
+* ``window``: low-rank NRSfM over the last ``window`` frames, warm-started when the track set
+  did not change; nothing until the first window is full, then every buffered frame, then one
+  shape per frame.
+* ``online``: the first window as ``window``, then each frame fitted alone to that window's
+  rank-K shape basis (O(KP)); the basis is rebuilt from the buffered frames when more than
+  ``REBASE_FRACTION`` of a frame's tracks are not in it.
+* ``batch``: ``batch_frames`` frames at a time with ``method`` (``auto``: ``planar`` when its
+  orthonormality test says the rest shape is planar, else ``bmm``).
+
+Gauge: every shape is in its frame's camera frame in image units (x, y the centred pixel
+coordinates), so rotation and scale are fixed by the data; the remaining depth reflection is
+chosen, for every solve after the first, to agree with the shapes already published on the
+frames and tracks they share.  ``flush()`` at the end of a stream returns a shape for every
+frame still pending (a stream shorter than the window is solved whole), so no frame is lost.
+"""
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .factorization import low_rank
+from .result import NRSfMResult
+
+MODES = ('window', 'online', 'batch')
+REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
+MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
+
+
+@dataclass(frozen=True)
+class StreamShape:
+    """One frame's reconstruction: ``X`` (n, 3) camera frame, image units (x, y centred pixel
+    coordinates of the frame, z depth relative to the frame's centroid, towards the scene),
+    ``t`` (2,) the image position of the centroid, for the tracks ``ids`` (n,)."""
+
+    index: int
+    ids: np.ndarray
+    X: np.ndarray
+    t: np.ndarray
+    residual_px: float
+
+
+@dataclass
+class _Frame:
+    index: int
+    ids: np.ndarray
+    uv: np.ndarray
+    vis: np.ndarray
+
+
+def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
+    from . import reconstruct
+    if method == 'auto':
+        from .planar import planar
+        res = planar(W, V)
+        if res.converged:
+            return res
+        method = 'bmm'
+    kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
+    return reconstruct(W, V, method=method, **kw)
+
+
+class StreamNRSfM:
+    """``push(ids, uv, visibility)`` -> the shapes that became available; ``flush()`` -> the
+    rest.  Shapes come out in frame order, exactly one per pushed frame over the stream."""
+
+    def __init__(self, mode: str = 'window', window: int = 15, rank: int = 2,
+                 iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
+                 solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None
+                 ) -> None:
+        if mode not in MODES:
+            raise ValueError(f'mode={mode!r}: expected one of {MODES}')
+        for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
+                                                                        1),
+                            ('batch_frames', batch_frames, 3)):
+            if v < lo:
+                raise ValueError(f'{name}: expected >= {lo}, got {v}')
+        self.mode, self.window, self.rank, self.iterations = mode, window, rank, iterations
+        self.method, self.batch_frames = method, batch_frames
+        self._solver = solver or _solve_default
+        size = batch_frames if mode == 'batch' else window
+        self._frames: deque[_Frame] = deque(maxlen=size)
+        self._pending: list[_Frame] = []          # pushed, no shape published yet
+        self._published: deque[StreamShape] = deque(maxlen=size)
+        self._count = 0
+        self._last: tuple[np.ndarray, NRSfMResult] | None = None   # window warm start
+        self._basis: tuple[np.ndarray, np.ndarray] | None = None   # online: ids, (K, 3, P)
+        self._R2 = np.eye(3)[:2]
+        self._a = np.zeros(rank)
+
+    @property
+    def frames_seen(self) -> int:
+        return self._count
+
+    # ------------------------------------------------------------------ public
+    def push(self, ids: np.ndarray, uv: np.ndarray, visibility: np.ndarray | None = None
+             ) -> list[StreamShape]:
+        ids = np.asarray(ids).astype(np.int64)
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape != (ids.size, 2):
+            raise ValueError(f'uv: expected shape ({ids.size}, 2), got {uv.shape}')
+        vis = np.ones(ids.size) if visibility is None else np.asarray(visibility, np.float64)
+        if vis.shape != (ids.size,):
+            raise ValueError(f'visibility: expected shape ({ids.size},), got {vis.shape}')
+        if np.unique(ids).size != ids.size:
+            raise ValueError('ids: duplicated track ids in one frame')
+        fr = _Frame(self._count, ids, uv, np.clip(np.nan_to_num(vis), 0.0, 1.0))
+        self._count += 1
+        self._frames.append(fr)
+        self._pending.append(fr)
+        if self.mode == 'batch':
+            if len(self._pending) < self.batch_frames:
+                return []
+            return self._solve_batch(list(self._pending))
+        if self.mode == 'online' and self._basis is not None:
+            if self._new_fraction(fr) <= REBASE_FRACTION:
+                return [self._publish(self._fit_online(fr))]
+            self._basis = None                  # too many new tracks: re-solve the window
+        if len(self._frames) < self.window:
+            return []
+        return self._solve_window()
+
+    def flush(self) -> list[StreamShape]:
+        """Shapes for every frame still pending (end of stream)."""
+        if not self._pending:
+            return []
+        if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
+            return self._solve_batch(list(self._pending)) if self.mode == 'batch' \
+                else self._solve_window()
+        # a single frame: no depth is observable; its points at the centroid's depth
+        fr = self._pending.pop(0)
+        t = fr.uv.mean(axis=0)
+        X = np.concatenate([fr.uv - t, np.zeros((fr.ids.size, 1))], axis=1)
+        return [self._publish(StreamShape(fr.index, fr.ids, X, t, 0.0))]
+
+    # ------------------------------------------------------------------ tracks -> W, V
+    @staticmethod
+    def _tracks(frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """W (2F, P) and V (F, P) over the union of the frames' ids (absent = invisible),
+        keeping tracks seen in at least ``MIN_OBSERVED`` frames; returns ids, W, V."""
+        all_ids = np.unique(np.concatenate([f.ids for f in frames]))
+        F, P = len(frames), all_ids.size
+        W = np.zeros((2 * F, P))
+        V = np.zeros((F, P))
+        for i, f in enumerate(frames):
+            col = np.searchsorted(all_ids, f.ids)
+            W[2 * i, col], W[2 * i + 1, col] = f.uv[:, 0], f.uv[:, 1]
+            # present but occluded: weakly kept (the low-rank model carries it)
+            V[i, col] = np.maximum(f.vis, 1e-3)
+        keep = (V >= 0.5).sum(axis=0) >= min(MIN_OBSERVED, F)
+        if keep.sum() < 4:                      # nearly nothing visible: use what is there
+            keep = V.sum(axis=0) > 0
+        return all_ids[keep], W[:, keep], V[:, keep]
+
+    # ------------------------------------------------------------------ solves
+    def _solve_window(self) -> list[StreamShape]:
+        frames = list(self._frames)
+        ids, W, V = self._tracks(frames)
+        init = None
+        if self._last is not None and len(frames) == self._last[1].S.shape[0]:
+            init = _warm_start(self._last[0], _shifted(self._last[1]), ids, W)
+        res = low_rank(W, V, rank=self.rank, iterations=self.iterations if init is not None
+                       else max(self.iterations, 60), init=init)
+        self._last = (ids, res)
+        out = self._emit(frames, ids, res, list(self._pending))
+        if self.mode == 'online' and self._basis is None:
+            self._init_basis(ids, res)
+        return out
+
+    def _solve_batch(self, frames: list[_Frame]) -> list[StreamShape]:
+        ids, W, V = self._tracks(frames)
+        if len(frames) == 2:
+            res = low_rank(W, V, rank=1)
+        else:
+            res = self._solver(W, V, self.method, self.rank)
+        return self._emit(frames, ids, res, list(self._pending))
+
+    def _emit(self, frames: list[_Frame], ids: np.ndarray, res: NRSfMResult,
+              wanted: list[_Frame]) -> list[StreamShape]:
+        """Shapes of ``wanted`` frames (a subset of ``frames``) from ``res``, in the stream's
+        depth reflection, published in order."""
+        pos = {f.index: i for i, f in enumerate(frames)}
+        X_all = res.S * res.scale[:, None, None]             # (F, P, 3) image units
+        if self._published:
+            X_all = X_all * self._reflection(frames, ids, X_all)
+        shapes = []
+        for fr in list(wanted):
+            i = pos[fr.index]
+            col, have = _lookup(ids, fr.ids)
+            shapes.append(self._publish(StreamShape(fr.index, fr.ids[have], X_all[i, col[have]],
+                                                    res.t[i], res.residual_px)))
+        return shapes
+
+    def _reflection(self, frames: list[_Frame], ids: np.ndarray, X_all: np.ndarray
+                    ) -> np.ndarray:
+        """[1, 1, +-1]: the depth sign agreeing with the published shapes of shared frames
+        (their depths, centred, correlated on the shared tracks)."""
+        score = 0.0
+        pos = {f.index: i for i, f in enumerate(frames)}
+        for sh in self._published:
+            i = pos.get(sh.index)
+            if i is None:
+                continue
+            common, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
+            if common.size < 4:
+                continue
+            za = sh.X[a, 2] - sh.X[a, 2].mean()
+            zb = X_all[i, b, 2] - X_all[i, b, 2].mean()
+            score += float(za @ zb)
+        if score == 0.0 and self._published:
+            # no frame in common (a new batch): compare with the last published frame
+            sh = self._published[-1]
+            common, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
+            if common.size >= 4:
+                za = sh.X[a, 2] - sh.X[a, 2].mean()
+                zb = X_all[0, b, 2] - X_all[0, b, 2].mean()
+                score = float(za @ zb)
+        return np.array([1.0, 1.0, -1.0 if score < 0 else 1.0])
+
+    def _publish(self, shape: StreamShape) -> StreamShape:
+        self._pending = [f for f in self._pending if f.index != shape.index]
+        self._published.append(shape)
+        return shape
+
+    # ------------------------------------------------------------------ online
+    def _init_basis(self, ids: np.ndarray, res: NRSfMResult) -> None:
+        S_obj = np.einsum('fpi,fij->fpj', res.S * res.scale[:, None, None], res.R)  # (F, P, 3)
+        F, P, _ = S_obj.shape
+        U, s, Vt = np.linalg.svd(S_obj.transpose(0, 2, 1).reshape(F, 3 * P),
+                                 full_matrices=False)
+        K = min(self.rank, F)
+        self._basis = (ids, Vt[:K].reshape(K, 3, P))
+        self._a = U[-1, :K] * s[:K]
+        self._R2 = res.R[-1, :2]
+
+    def _new_fraction(self, fr: _Frame) -> float:
+        assert self._basis is not None
+        return float((~_lookup(self._basis[0], fr.ids)[1]).mean())
+
+    def _fit_online(self, fr: _Frame) -> StreamShape:
+        assert self._basis is not None
+        bids, B = self._basis
+        col, have = _lookup(bids, fr.ids)
+        vis = np.zeros(bids.size)
+        w = np.zeros((2, bids.size))
+        vis[col[have]] = fr.vis[have]
+        w[:, col[have]] = fr.uv[have].T
+        K, _, P = B.shape
+        sw = np.sqrt(vis)
+        R2, a = self._R2, self._a
+        T = np.zeros((2, 2 * P))
+        T[0, :P], T[1, P:] = 1.0, 1.0
+        for _ in range(5):
+            # coefficients and translation by linear least squares, then the camera (polar)
+            RB = np.einsum('ij,kjp->kip', R2, B).reshape(K, 2 * P)
+            A = np.vstack([RB, T]).T * np.tile(sw, 2)[:, None]
+            sol = np.linalg.lstsq(A, w.reshape(-1) * np.tile(sw, 2), rcond=None)[0]
+            a, t = sol[:K], sol[K:]
+            S = np.einsum('k,kip->ip', a, B)
+            U, _, Vt = np.linalg.svd(((w - t[:, None]) * vis) @ S.T, full_matrices=False)
+            R2 = U @ Vt
+        self._R2, self._a = R2, a
+        S = np.einsum('k,kip->ip', a, B)
+        R3 = np.concatenate([R2, np.cross(R2[0], R2[1])[None]])
+        X = (R3 @ S).T
+        X = X * self._reflection([fr], bids, X[None])
+        resid = np.linalg.norm(w - t[:, None] - R2 @ S, axis=0)
+        return StreamShape(fr.index, fr.ids[have], X[col[have]], t,
+                           float((resid * vis).sum() / max(vis.sum(), 1e-12)))
+
+
+def _lookup(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of ``ids`` in ``sorted_ids`` and which of them are there at all."""
+    col = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
+    return col, sorted_ids[col] == ids
+
+
+def _warm_start(prev_ids: np.ndarray, prev: NRSfMResult, ids: np.ndarray, W: np.ndarray
+                ) -> NRSfMResult:
+    """The previous window's result on the new window's track set: shared tracks keep their
+    shapes; a new track starts in its frames' image planes at the centroid depth."""
+    F = prev.S.shape[0]
+    col, have = _lookup(prev_ids, ids)
+    S = np.empty((F, ids.size, 3))
+    S[:, have] = prev.S[:, col[have]]
+    uv = W.reshape(F, 2, -1)[:, :, ~have].transpose(0, 2, 1)             # (F, n, 2)
+    S[:, ~have, :2] = (uv - prev.t[:, None, :]) / prev.scale[:, None, None]
+    S[:, ~have, 2] = 0.0
+    return replace(prev, S=S)
+
+
+def _shifted(res: NRSfMResult) -> NRSfMResult:
+    def shift(a: np.ndarray) -> np.ndarray:
+        return np.concatenate([a[1:], a[-1:]], axis=0)
+    return replace(res, S=shift(res.S), R=shift(res.R), scale=shift(res.scale), t=shift(res.t))
