@@ -46,13 +46,23 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument('--timeout', type=float, default=60.0,
                    help='seconds to wait for the last outputs after replay (default 60)')
 
+    from .io.synth import SURFACES
     s = add('synth', 'write a synthetic deforming sequence (MCAP bag + .npz ground truth)')
-    s.add_argument('--surface', choices=['flag', 'face'], default='flag')
+    s.add_argument('--surface', choices=SURFACES, default='flag',
+                   help='flag, face, sheet (isometric bending) or sphere (breathing cap)')
     s.add_argument('--size', default='256x192', help='WIDTHxHEIGHT (default 256x192)')
     s.add_argument('--frames', type=int, default=60)
     s.add_argument('--fps', type=float, default=10.0)
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--noise', type=float, default=0.0, help='image noise sigma')
+    s.add_argument('--camera-motion', type=float, default=12.0, metavar='DEG',
+                   help='camera swing amplitude, degrees 0..90 (default 12)')
+    s.add_argument('--amplitude', type=float, default=1.0, metavar='A',
+                   help='deformation amplitude multiplier, 0 = rigid (default 1)')
+    s.add_argument('--occluder', action='store_true',
+                   help='a textured disc sweeps across in front of the surface')
+    s.add_argument('--distance', type=float, default=4.0, metavar='M',
+                   help='camera distance to the surface, metres (default 4)')
     s.add_argument('--stride', type=int, default=2, help='ground-truth track sampling')
     s.add_argument('--out', required=True, help='output bag folder (the .npz goes beside it)')
 
@@ -209,7 +219,18 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from .io.synth import SynthConfig, generate
     w, h = _size(args.size)
     cfg = SynthConfig(surface=args.surface, width=w, height=h, frames=args.frames, fps=args.fps,
-                      seed=args.seed, noise=args.noise, stride=args.stride)
+                      seed=args.seed, noise=args.noise, stride=args.stride,
+                      camera_motion_deg=args.camera_motion, amplitude=args.amplitude,
+                      occluder=args.occluder, distance=args.distance)
+    flags = {'camera_motion_deg': '--camera-motion', 'amplitude': '--amplitude',
+             'distance': '--distance', 'noise': '--noise', 'frames': '--frames', 'fps': '--fps',
+             'stride': '--stride', 'width x height ': '--size'}
+    try:
+        cfg.validate()
+    except ValueError as err:  # name the flag, not the config field
+        field, _, rest = str(err).partition('=')
+        flag = flags.get(field)
+        raise CliError(f'{flag} {rest.lstrip()}' if flag else str(err)) from err
     out = Path(args.out)
     if out.exists():
         raise CliError(f'{out} exists; choose another --out or delete it')

@@ -1,10 +1,12 @@
 """Deterministic synthetic sequences with ground truth: a deforming textured surface (waving
-flag or face-like) seen by a moving pinhole camera.
+flag, face-like cap, isometrically bending sheet or breathing sphere cap) seen by a moving pinhole
+camera, optionally with an opaque textured occluder sweeping across between camera and surface.
 
 Per frame: an rgb8 image rendered by a vectorised triangle rasteriser (z-buffer, bilinear texture,
-Lambertian shading), a depth image (32FC1 metres, NaN off the surface), CameraInfo intrinsics, the
-camera pose, and for every tracked reference pixel its ground-truth 3D point in the camera
-optical frame (x right, y down, z forward; metres), its 2D track and its visibility.
+Lambertian shading), a depth image (32FC1 metres, NaN off the surface and the occluder),
+CameraInfo intrinsics, the camera pose, and for every tracked reference pixel its ground-truth 3D
+point in the camera optical frame (x right, y down, z forward; metres), its 2D track and its
+visibility (0 out of the image, self-occluded or behind the occluder).
 
 Track ids are the reference pixels' linear indices ``y * width + x`` (the tracker uses the same
 convention), sampled every ``stride`` pixels.
@@ -16,7 +18,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-SURFACES = ('flag', 'face')
+SURFACES = ('flag', 'face', 'sheet', 'sphere')
+SPHERE_RADIUS = 0.3                   # sphere cap: rest radius (m) and polar half-angle
+SPHERE_HALF_ANGLE = np.radians(70.0)  # a 140 deg arc of the sphere
+# object width (m) the focal length is set for: the surface fills ~75% of the image width
+EXTENT = {'flag': 1.0, 'face': 0.5, 'sheet': 1.0,
+          'sphere': 2 * SPHERE_RADIUS * float(np.sin(SPHERE_HALF_ANGLE))}
+MIN_DISTANCE = 1.5                    # m: every surface (and the occluder) in front of the camera
+MAX_AMPLITUDE = 4.0
+OCCLUDER_AREA = 0.3                   # occluder disc area / the surface's area in frame 0
 
 
 @dataclass(frozen=True)
@@ -31,7 +41,8 @@ class SynthConfig:
     stride: int = 2             # ground-truth track sampling on the reference pixel grid
     noise: float = 0.0          # image noise sigma (intensity units)
     camera_motion_deg: float = 12.0
-    amplitude: float = 1.0      # deformation amplitude multiplier
+    amplitude: float = 1.0      # deformation amplitude multiplier (0: rigid)
+    occluder: bool = False      # a textured disc sweeps across in front of the surface
     start_ns: int = 1_700_000_000 * 1_000_000_000
 
     def validate(self) -> None:
@@ -42,8 +53,21 @@ class SynthConfig:
                              '48..1080')
         if not 3 <= self.frames <= 2000:
             raise ValueError(f'frames={self.frames}: expected 3..2000')
-        if self.fps <= 0 or self.distance <= 0 or self.stride < 1:
-            raise ValueError('fps, distance must be > 0 and stride >= 1')
+        if not self.fps > 0:
+            raise ValueError(f'fps={self.fps}: expected > 0')
+        if self.stride < 1:
+            raise ValueError(f'stride={self.stride}: expected >= 1')
+        if not self.distance >= MIN_DISTANCE:
+            raise ValueError(f'distance={self.distance}: expected >= {MIN_DISTANCE} m (the '
+                             'surface must stay in front of the camera)')
+        if not self.noise >= 0:
+            raise ValueError(f'noise={self.noise}: expected >= 0')
+        if not 0 <= self.camera_motion_deg <= 90:
+            raise ValueError(f'camera_motion_deg={self.camera_motion_deg}: expected 0..90')
+        if not 0 <= self.amplitude <= MAX_AMPLITUDE:
+            raise ValueError(f'amplitude={self.amplitude}: expected 0..{MAX_AMPLITUDE}')
+        if not isinstance(self.occluder, (bool, np.bool_)):
+            raise ValueError(f'occluder={self.occluder!r}: expected True or False')
 
 
 @dataclass
@@ -59,20 +83,32 @@ class SynthSequence:
     V: np.ndarray               # (F, P) ground-truth visibility
     S: np.ndarray               # (F, P, 3) ground truth, camera optical frame, metres
     S_world: np.ndarray         # (F, P, 3) ground truth, world (object) frame
+    occluder: np.ndarray | None = None  # (F, 4) disc centre u, v (px), radius (px), depth (m)
 
     def npz_dict(self) -> dict[str, np.ndarray]:
-        return {'images': self.images, 'depth': self.depth, 'K': self.K,
-                'T_camera_world': self.T_camera_world, 'stamps_ns': self.stamps_ns,
-                'track_ids': self.track_ids, 'W': self.W, 'V': self.V, 'S': self.S,
-                'S_world': self.S_world, 'surface': np.array(self.config.surface),
-                'fps': np.array(self.config.fps)}
+        c = self.config
+        d = {'images': self.images, 'depth': self.depth, 'K': self.K,
+             'T_camera_world': self.T_camera_world, 'stamps_ns': self.stamps_ns,
+             'track_ids': self.track_ids, 'W': self.W, 'V': self.V, 'S': self.S,
+             'S_world': self.S_world, 'surface': np.array(c.surface), 'fps': np.array(c.fps),
+             'seed': np.array(c.seed), 'distance': np.array(c.distance),
+             'noise': np.array(c.noise), 'camera_motion_deg': np.array(c.camera_motion_deg),
+             'amplitude': np.array(c.amplitude), 'occluder_on': np.array(bool(c.occluder))}
+        if self.occluder is not None:
+            d['occluder'] = self.occluder
+        return d
 
 
 # ---------------------------------------------------------------- surfaces (object frame)
 
 def _surface(kind: str, s: np.ndarray, t: np.ndarray, tau: float, amp: float,
              phase: np.ndarray) -> np.ndarray:
-    """3D points (N, 3) of the surface at parameters s, t in [0, 1] and time tau (seconds)."""
+    """3D points (N, 3) of the surface at parameters s, t in [0, 1] and time tau (seconds).
+    Object frame: x right, y down, z away from the camera (the camera starts on -z)."""
+    if kind == 'sheet':
+        return _sheet(s, t, tau, amp, phase)
+    if kind == 'sphere':
+        return _sphere(s, t, tau, amp, phase)
     if kind == 'flag':
         x = (s - 0.5) * 1.0
         y = (t - 0.5) * 0.7
@@ -101,8 +137,61 @@ def _surface(kind: str, s: np.ndarray, t: np.ndarray, tau: float, amp: float,
     return np.stack([x, y, z], axis=1)
 
 
+def _sheet(s: np.ndarray, t: np.ndarray, tau: float, amp: float,
+           phase: np.ndarray) -> np.ndarray:
+    """A 1.0 x 0.7 m sheet bent isometrically into a cylinder of curvature k(tau) about an axis
+    in its plane through its centre whose direction alpha(tau) turns slowly: the arc length a
+    across the axis is kept exactly (x_a = sin(k a) / k, z = (1 - cos(k a)) / k, through sinc
+    so that k -> 0 is the flat sheet).  k swings between -1.4 amp and 1.4 amp rad/m."""
+    u = (s - 0.5) * 1.0
+    v = (t - 0.5) * 0.7
+    k = amp * 1.4 * np.sin(2 * np.pi * 0.12 * tau + phase[0])
+    alpha = 0.4 * np.sin(2 * np.pi * 0.07 * tau + phase[1])
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    a = u * ca + v * sa                    # arc length across the bending axis
+    b = -u * sa + v * ca                   # along the axis (unchanged)
+    xa = a * np.sinc(k * a / np.pi)                              # sin(k a) / k
+    z = 0.5 * k * a ** 2 * np.sinc(k * a / (2 * np.pi)) ** 2     # (1 - cos(k a)) / k
+    z = z - 0.25 * k * 0.25 * np.sinc(k * 0.5 / (2 * np.pi)) ** 2  # half the edge sagitta
+    return np.stack([xa * ca - b * sa, xa * sa + b * ca, z], axis=1)
+
+
+# bump directions on the sphere cap: (polar, azimuth) in degrees, height (m), angular width
+_SPHERE_BUMPS = np.array([[35.0, 20.0, 0.030, 0.30], [50.0, 150.0, 0.025, 0.25],
+                          [42.0, 260.0, 0.028, 0.28], [12.0, 95.0, 0.018, 0.22]])
+
+
+def _unit(polar: np.ndarray | float, azimuth: np.ndarray | float) -> np.ndarray:
+    """Unit vectors (..., 3) at polar angle from -z (towards the camera) and azimuth."""
+    sp = np.sin(polar)
+    return np.stack([sp * np.cos(azimuth), sp * np.sin(azimuth), -np.cos(polar)], axis=-1)
+
+
+def _sphere(s: np.ndarray, t: np.ndarray, tau: float, amp: float,
+            phase: np.ndarray) -> np.ndarray:
+    """A 140 deg cap of a 0.3 m sphere facing the camera (apex towards -z), organ-like: four
+    smooth bumps that pulse, a bulge travelling round the cap and a breathing radius, all
+    scaled by amp (amp = 0: a rigid bumpy cap).  The disc domain of (s, t) maps to the polar
+    angle linearly in its radius (an azimuthal equidistant chart)."""
+    u, v = (s - 0.5) / 0.5, (t - 0.5) / 0.5
+    rho = np.hypot(u, v)
+    theta = rho * SPHERE_HALF_ANGLE
+    g = SPHERE_HALF_ANGLE * np.sinc(theta / np.pi)          # sin(theta) / rho
+    d = np.stack([u * g, v * g, -np.cos(theta)], axis=1)   # unit directions
+    cb = _unit(np.radians(_SPHERE_BUMPS[:, 0]), np.radians(_SPHERE_BUMPS[:, 1]))  # (4, 3)
+    pulse = 1 + amp * 0.5 * np.sin(2 * np.pi * np.array([0.21, 0.17, 0.26, 0.3]) * tau
+                                   + phase[1] + 2.1 * np.arange(4))
+    bumps = np.exp(-(1 - d @ cb.T) / _SPHERE_BUMPS[:, 3] ** 2) @ (_SPHERE_BUMPS[:, 2] * pulse)
+    cm = _unit(np.radians(45.0), 2 * np.pi * 0.08 * tau + phase[2])
+    bulge = amp * 0.035 * np.exp(-(1 - d @ cm) / 0.3 ** 2)
+    r = SPHERE_RADIUS * (1 + amp * 0.06 * np.sin(2 * np.pi * 0.2 * tau + phase[0])) + bumps \
+        + bulge
+    centre_z = SPHERE_RADIUS * (1 + np.cos(SPHERE_HALF_ANGLE)) / 2  # apex and rim at -/+ z
+    return r[:, None] * d + [0.0, 0.0, centre_z]
+
+
 def _in_domain(kind: str, s: np.ndarray, t: np.ndarray) -> np.ndarray:
-    if kind == 'flag':
+    if kind in ('flag', 'sheet'):
         return np.ones_like(s, dtype=bool)
     return ((s - 0.5) / 0.5) ** 2 + ((t - 0.5) / 0.5) ** 2 <= 0.98
 
@@ -121,6 +210,38 @@ def _texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
         cv2.circle(tex, c, r, col, -1, lineType=cv2.LINE_AA)
     tex = (tex - tex.mean()) / (tex.std() + 1e-6)
     return np.clip(128 + 45 * tex, 10, 245).astype(np.uint8)
+
+
+def _occluder_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+    """The occluder's texture (size, size, 3) uint8: bold diagonal stripes in a cool tint over
+    fine noise, unlike the surface's blobs, so that it is trackable but never confused."""
+    y, x = np.mgrid[0:size, 0:size].astype(np.float32)
+    stripes = (np.sin(2 * np.pi * (x + y) / 24.0) > 0).astype(np.float32)
+    fine = cv2.resize(rng.normal(size=(64, 64, 3)).astype(np.float32), (size, size),
+                      interpolation=cv2.INTER_CUBIC)
+    tint = np.array([70.0, 110.0, 190.0], np.float32)
+    tex = tint * (0.45 + 0.55 * stripes[..., None]) + 18.0 * fine
+    return np.clip(tex, 10, 245).astype(np.uint8)
+
+
+def _occluder_path(cfg: SynthConfig, area_px: float, rng: np.random.Generator) -> np.ndarray:
+    """(F, 4): the occluder disc's image centre u, v (px), radius (px) and depth (m, camera
+    frame) per frame.  A fronto-parallel disc of OCCLUDER_AREA x ``area_px`` (the surface's
+    area in frame 0) at half the camera distance, entering from one side just outside the image
+    in frame 0 and leaving at the other in the last frame, on a slightly sloped line."""
+    F, W, H = cfg.frames, cfg.width, cfg.height
+    r = max(np.sqrt(OCCLUDER_AREA * area_px / np.pi), 1.0)
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    v0, slope = H * (0.5 + rng.uniform(-0.12, 0.12)), H * rng.uniform(-0.1, 0.1)
+    a = np.arange(F) / (F - 1)
+    u = (W - 1) / 2 + side * (a - 0.5) * (W + 2 * r + 4)
+    v = v0 + slope * (a - 0.5)
+    return np.stack([u, v, np.full(F, r), np.full(F, 0.5 * cfg.distance)], axis=1)
+
+
+def _occluded(uv: np.ndarray, disc: np.ndarray) -> np.ndarray:
+    """Which image points uv (N, 2) the occluder disc (u, v, radius, depth) covers."""
+    return np.hypot(uv[:, 0] - disc[0], uv[:, 1] - disc[1]) <= disc[2]
 
 
 # ---------------------------------------------------------------- camera
@@ -224,8 +345,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     rng = np.random.default_rng(cfg.seed)
     texture = _texture(rng)
     phase = rng.uniform(0, 2 * np.pi, 3)
-    extent = 1.0 if cfg.surface == 'flag' else 0.5
-    f = 0.75 * cfg.width * cfg.distance / extent
+    f = 0.75 * cfg.width * cfg.distance / EXTENT[cfg.surface]
     K = np.array([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1.0]])
     poses = _camera_poses(cfg, rng)
     n_s = max(40, cfg.width // 3)
@@ -237,6 +357,11 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     depth = np.empty((F, H, Wd), np.float32)
     zbufs = []
     ref_st = None
+    occ_rng = np.random.default_rng([cfg.seed, 0x0CC])  # apart from rng: defaults unchanged
+    occ_tex = _occluder_texture(occ_rng) if cfg.occluder else None
+    occ = None
+    pix = np.stack(np.meshgrid(np.arange(Wd), np.arange(H)), axis=-1).reshape(-1, 2) \
+        if cfg.occluder else np.empty((0, 2))
     for fi in range(F):
         tau = fi / cfg.fps
         Xw = _surface(cfg.surface, s, t, tau, cfg.amplitude, phase)
@@ -253,11 +378,23 @@ def generate(cfg: SynthConfig) -> SynthSequence:
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         img = tex.astype(np.float32) * np.nan_to_num(att[..., 2:3])
         img[~covered] = 20.0
+        if occ_tex is not None:
+            if occ is None:
+                occ = _occluder_path(cfg, float(covered.sum()), occ_rng)
+            disc = occ[fi]
+            on = _occluded(pix, disc).reshape(H, Wd) & (disc[3] < zbuf)
+            ys, xs = np.nonzero(on)
+            n = occ_tex.shape[0] - 1
+            tu = np.clip((xs - disc[0] + disc[2]) / (2 * disc[2]) * n, 0, n)
+            tv = np.clip((ys - disc[1] + disc[2]) / (2 * disc[2]) * n, 0, n)
+            img[ys, xs] = occ_tex[np.rint(tv).astype(int), np.rint(tu).astype(int)]
+            zbuf = np.where(on, disc[3], zbuf)
+            covered = covered | on
         if cfg.noise > 0:
             img += rng.normal(0, cfg.noise, img.shape)
         images[fi] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         depth[fi] = np.where(covered, zbuf, np.nan).astype(np.float32)
-        zbufs.append(zbuf)
+        zbufs.append(zbuf)  # with the occluder's depth: V is 0 for points behind it
         if fi == 0:
             ref_st = att[..., :2]
     assert ref_st is not None
@@ -284,7 +421,8 @@ def generate(cfg: SynthConfig) -> SynthSequence:
         V[fi] = inside & (Xc[:, 2] <= zbufs[fi][yi, xi] + 0.02)
     stamps = cfg.start_ns + np.rint(np.arange(F) / cfg.fps * 1e9).astype(np.int64)
     return SynthSequence(config=cfg, images=images, depth=depth, K=K, T_camera_world=poses,
-                         stamps_ns=stamps, track_ids=ids, W=Wt, V=V, S=S, S_world=Sw)
+                         stamps_ns=stamps, track_ids=ids, W=Wt, V=V, S=S, S_world=Sw,
+                         occluder=occ)
 
 
 def _vertex_normals(X: np.ndarray, tris: np.ndarray) -> np.ndarray:
@@ -307,11 +445,13 @@ def scene_flow_ground_truth(seq: SynthSequence, f: int) -> np.ndarray:
 def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
                  projection: str = 'orthographic', camera_motion_deg: float = 40.0,
                  fps: float = 10.0, distance: float = 4.0, focal: float = 2000.0,
-                 seed: int = 0, sampling: str = 'random') -> dict[str, np.ndarray]:
+                 seed: int = 0, sampling: str = 'random',
+                 amplitude: float = 1.0) -> dict[str, np.ndarray]:
     """Ground-truth dense tracks of a deforming surface without rendering (for NRSfM benchmarks
     at any size): ``points`` surface samples, the same camera path as ``generate``.
     ``sampling``: 'random' (uniform in the surface's domain) or 'grid' (a regular grid of the
     domain, about ``points`` samples, as a tracker's every-stride-th pixel gives).
+    ``amplitude``: the deformation multiplier of ``SynthConfig`` (0: rigid).
 
     ``projection``: 'orthographic' (W = focal / distance x the camera-frame x, y) or
     'weak-perspective' (W = focal / mean depth of the frame x x, y).  Returns W (2F, P),
@@ -325,10 +465,12 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
         raise ValueError(f'frames={frames}, points={points}: expected >= 3')
     if sampling not in ('random', 'grid'):
         raise ValueError(f"sampling={sampling!r}: expected 'random' or 'grid'")
+    if not 0 <= amplitude <= MAX_AMPLITUDE:
+        raise ValueError(f'amplitude={amplitude}: expected 0..{MAX_AMPLITUDE}')
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, 3)
     cfg = SynthConfig(surface=surface, frames=frames, fps=fps, seed=seed, distance=distance,
-                      camera_motion_deg=camera_motion_deg)
+                      camera_motion_deg=camera_motion_deg, amplitude=amplitude)
     poses = _camera_poses(cfg, rng)
     if sampling == 'grid':                   # the domain's share of the unit square, then a grid
         cs, ct = rng.uniform(0, 1, (2, 20000))
@@ -345,7 +487,7 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
             keep = _in_domain(surface, cs, ct)
             s, t = np.concatenate([s, cs[keep]]), np.concatenate([t, ct[keep]])
         s, t = s[:points], t[:points]
-    Sw = np.stack([_surface(surface, s, t, f / fps, 1.0, phase) for f in range(frames)])
+    Sw = np.stack([_surface(surface, s, t, f / fps, amplitude, phase) for f in range(frames)])
     S = np.einsum('fij,fpj->fpi', poses[:, :3, :3], Sw) + poses[:, None, :3, 3]
     k = focal / (distance if projection == 'orthographic' else S[:, :, 2].mean(1))
     W = (np.broadcast_to(np.reshape(k, (-1, 1, 1)), (frames, 1, 1)) * S[:, :, :2])
