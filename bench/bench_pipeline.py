@@ -1,0 +1,174 @@
+"""End-to-end pipeline accuracy (issue 12): what a subscriber of nrsfm/points receives, against
+the trivial baselines, over a sweep of rendered sequences.
+
+    .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
+        [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
+        [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
+        [--live] [--json out.json]
+
+Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
+frames) of
+- the baselines: static oracle (ground-truth frame 0 repeated), flat plane (frame 0 flattened
+  onto its plane), and the rigid factorisation of the ground-truth tracks;
+- each method of ``--gt-methods`` on the ground-truth tracks (batch, whole sequence), and the
+  reconstructor's stream (defaults) fed the ground-truth tracks frame by frame (``stream(GT)``);
+- the pipeline: ``process`` (tracker -> reconstructor, shipped defaults) on the rendered bag, for
+  each reconstructor mode (the tracker runs once, its tracks feed every mode), and with
+  ``--live`` the live node graph over DDS;
+- frames in / out (the fewest clouds of any pipeline row) and the ratio of the best pipeline row
+  and of ``stream(GT)`` to the static oracle;
+- why a case may be hard: the camera's rotation range (deg) over the sequence, which is what
+  makes depth observable to an orthographic factorisation.
+A pipeline row scores only the frames and points it published that match ground truth (by stamp
+and track id); its static/flat baselines are recomputed on exactly those points (`static*`).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchlib import parser, table  # noqa: E402
+from nrsfm_ros.core.metrics import rotation_angle_deg  # noqa: E402
+from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
+from nrsfm_ros.evaluation import (read_clouds, score, shapes_as_clouds,  # noqa: E402
+                                  stream_on_tracks)
+from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
+from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
+from nrsfm_ros.params import ReconstructorParams  # noqa: E402
+from nrsfm_ros.pipeline import process_bag  # noqa: E402
+
+GT_KW = {'lowrank': {'rank': 3}}
+
+
+def camera_range_deg(T: np.ndarray) -> float:
+    """Largest rotation between any frame's camera and frame 0's (deg)."""
+    R0 = T[0, :3, :3]
+    return max(rotation_angle_deg(R0 @ T[f, :3, :3].T) for f in range(T.shape[0]))
+
+
+def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
+             work: Path) -> dict:
+    seq = generate(cfg)
+    row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
+                 'amplitude': cfg.amplitude, 'occluder': bool(getattr(cfg, 'occluder', False)),
+                 'frames_in': cfg.frames, 'camera_range_deg': camera_range_deg(seq.T_camera_world)}
+    gt = score(shapes_as_clouds(seq.S, seq.track_ids), seq).summary()
+    row['static'], row['flat'] = gt['static'], gt['flat']
+    V = np.maximum(seq.V, 1e-3)
+    for m in ['rigid'] + [g for g in gt_methods if g != 'rigid']:
+        t = time.perf_counter()
+        try:
+            res = reconstruct(seq.W, V, method=m, **GT_KW.get(m, {}))
+            row[f'gt_{m}'] = score(shapes_as_clouds(res.S, seq.track_ids), seq).summary()['e3d']
+        except Exception as err:             # a method that fails is a result, not a crash
+            row[f'gt_{m}'] = float('nan')
+            row[f'gt_{m}_error'] = str(err)
+        row[f'gt_{m}_s'] = time.perf_counter() - t
+    st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids), seq).summary()
+    row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
+    case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
+    if case.exists():
+        shutil.rmtree(case)
+    case.mkdir(parents=True)
+    write_sequence_bag(seq, case / 'in')
+    t = time.perf_counter()
+    rep = process_bag(case / 'in', case / 'tracks', stages=['tracker'], progress=False,
+                      copy_inputs=True)
+    row['tracker_s'] = time.perf_counter() - t
+    outs = []
+    for mode in modes:
+        t = time.perf_counter()
+        rep = process_bag(case / 'tracks', case / mode, stages=['reconstructor'], progress=False,
+                          params={'reconstructor': ReconstructorParams(mode=mode)})
+        row[f'{mode}_s'] = time.perf_counter() - t
+        s = score(read_clouds(case / mode, seq.stamps_ns), seq).summary()
+        row[mode], row[f'{mode}_static'] = s['e3d'], s['static']
+        row[f'{mode}_frames'] = rep.outputs.get('nrsfm/points', 0)
+        row[f'{mode}_failures'] = len(rep.failures)
+        outs.append(row[f'{mode}_frames'])
+    if live:
+        from nrsfm_ros.demo import run_live
+        lv = run_live(case / 'in', case / 'live', cfg.frames, rate=1.0, timeout=60,
+                      overrides={'tracker': {'reliable': True}})
+        s = score(read_clouds(case / 'live', seq.stamps_ns), seq).summary()
+        row['live'], row['live_frames'] = s['e3d'], len(read_clouds(case / 'live',
+                                                                    seq.stamps_ns))
+        row['live_exit'] = lv.get('graph_exit')
+        outs.append(row['live_frames'])
+    row['frames_out'] = min(outs) if outs else 0
+    pipe = [row[k] for k in modes + (['live'] if live else []) if np.isfinite(row[k])]
+    row['best_pipeline'] = min(pipe) if pipe else float('nan')
+    row['ratio_pipeline'] = row['best_pipeline'] / row['static']
+    row['ratio_stream_gt'] = row['stream_gt'] / row['static']
+    return row
+
+
+def main() -> None:
+    p = parser(__doc__)
+    p.add_argument('--surfaces', default='flag,face,sheet,sphere')
+    p.add_argument('--motions', default='12,30,60')
+    p.add_argument('--amplitudes', default='1,2')
+    p.add_argument('--occluder', default='off,on', help='off, on or off,on')
+    p.add_argument('--size', default='256x192')
+    p.add_argument('--frames', type=int, default=60)
+    p.add_argument('--modes', default='window,online,batch')
+    p.add_argument('--gt-methods', default='rigid,lowrank,planar,bmm')
+    p.add_argument('--live', action='store_true', help='also run the live graph over DDS')
+    p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
+    a = p.parse_args()
+    w, h = (int(v) for v in a.size.split('x'))
+    modes = [m for m in a.modes.split(',') if m]
+    gt_methods = [m for m in a.gt_methods.split(',') if m]
+    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix='bench_pipeline_'))
+    fields = {f.name for f in SynthConfig.__dataclass_fields__.values()}
+    rows = []
+    for surface in a.surfaces.split(','):
+        for motion in (float(v) for v in a.motions.split(',')):
+            for amp in (float(v) for v in a.amplitudes.split(',')):
+                for occ in a.occluder.split(','):
+                    kw = dict(surface=surface, width=w, height=h, frames=a.frames, seed=0,
+                              camera_motion_deg=motion, amplitude=amp)
+                    if occ == 'on':
+                        if 'occluder' not in fields:
+                            continue
+                        kw['occluder'] = True
+                    row = run_case(SynthConfig(**kw), modes, gt_methods, a.live, work)
+                    rows.append(row)
+                    print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
+                                      for k, v in row.items()}), file=sys.stderr)
+    if not a.work:
+        shutil.rmtree(work, ignore_errors=True)
+    pipe_cols = modes + (['live'] if a.live else [])
+    header = (['surface', 'cam deg', 'amp', 'occl', 'cam range', 'static', 'flat']
+              + [f'{m}(GT)' for m in gt_methods] + ['stream(GT)']
+              + [f'{m}' for m in pipe_cols] + ['frames in/out', 'pipe/static', 'stream(GT)/static'])
+
+    def f4(v: float) -> str:
+        return f'{v:.4f}' if np.isfinite(v) else 'nan'
+    table(header, [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+                    'yes' if r['occluder'] else 'no', f"{r['camera_range_deg']:.0f}",
+                    f4(r['static']), f4(r['flat'])]
+                   + [f4(r[f'gt_{m}']) for m in gt_methods] + [f4(r['stream_gt'])]
+                   + [f4(r[m]) for m in pipe_cols]
+                   + [f"{r['frames_in']}/{r['frames_out']}", f"{r['ratio_pipeline']:.2f}",
+                      f"{r['ratio_stream_gt']:.2f}"] for r in rows])
+    ratios = np.array([r['ratio_pipeline'] for r in rows])
+    if rows:
+        print(f'\npipeline / static: median {np.nanmedian(ratios):.2f}, worst '
+              f'{np.nanmax(ratios):.2f}; cases with frames out < in: '
+              f"{sum(r['frames_out'] < r['frames_in'] for r in rows)} of {len(rows)}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1, default=str))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,121 @@
+"""Streaming NRSfM keyed by track id, the depth image and the stream evaluation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nrsfm_ros.core.depth import depth_image
+from nrsfm_ros.core.metrics import flat_shape, score_stream
+from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+from nrsfm_ros.evaluation import stream_on_tracks
+from nrsfm_ros.io.synth import dense_tracks
+
+
+@pytest.fixture(scope='module')
+def face():
+    d = dense_tracks('face', frames=30, points=400, projection='orthographic',
+                     camera_motion_deg=30)
+    return d, np.arange(d['W'].shape[1])
+
+
+@pytest.mark.parametrize('mode', ['window', 'online', 'batch'])
+@pytest.mark.parametrize('frames', [1, 2, 7, 30])
+def test_one_shape_per_frame_in_order(face, mode, frames):
+    d, ids = face
+    s = StreamNRSfM(mode=mode, window=10, batch_frames=12)
+    got = []
+    for f in range(frames):
+        got += [sh.index for sh in s.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])]
+    got += [sh.index for sh in s.flush()]
+    assert got == list(range(frames))
+    assert s.flush() == []
+
+
+@pytest.mark.parametrize('mode', ['window', 'online', 'batch'])
+def test_track_set_change_keeps_every_frame_and_the_carried_ids(face, mode):
+    """Half-way the track set changes (a re-selection: 70% carried, new ids added): no frame is
+    lost and the carried tracks keep being reconstructed."""
+    d, ids = face
+    P = ids.size
+    carried = ids[: int(0.7 * P)]
+    new_ids = np.arange(10_000, 10_000 + P - carried.size)
+    s = StreamNRSfM(mode=mode, window=8, batch_frames=10)
+    out = {}
+    for f in range(30):
+        uv = d['W'][2 * f:2 * f + 2].T
+        if f < 15:
+            fid, fuv = ids, uv
+        else:       # same physical points: the carried ones first, the rest under new ids
+            fid, fuv = np.concatenate([carried, new_ids]), uv
+        for sh in s.push(fid, fuv, np.ones(fid.size)):
+            out[sh.index] = sh
+    for sh in s.flush():
+        out[sh.index] = sh
+    assert sorted(out) == list(range(30))
+    for f in range(16, 30):
+        assert np.isin(carried, out[f].ids).mean() > 0.95
+
+
+def test_duplicate_ids_rejected(face):
+    d, ids = face
+    s = StreamNRSfM()
+    bad = ids.copy()
+    bad[3] = bad[4]
+    with pytest.raises(ValueError, match='duplicated'):
+        s.push(bad, d['W'][:2].T)
+
+
+def test_depth_reflection_is_consistent_over_the_stream(face):
+    """Consecutive published shapes have positively correlated (centred) depths."""
+    d, ids = face
+    clouds = stream_on_tracks(d['W'], d['V'], ids, mode='window', window=8)
+    for f in range(1, 30):
+        za, zb = clouds[f - 1][0][:, 2], clouds[f][0][:, 2]
+        assert np.corrcoef(za, zb)[0, 1] > 0.5, f
+
+
+def test_window_stream_recovers_the_face_better_than_flat(face):
+    d, ids = face
+    sc = score_stream(stream_on_tracks(d['W'], d['V'], ids, mode='window', window=10), ids,
+                      d['S']).summary()
+    assert sc['frames_scored'] == 30
+    assert sc['e3d'] < 0.5 * sc['flat']
+
+
+def test_depth_image_of_a_plane():
+    xs, ys = np.meshgrid(np.arange(20, 100, 2), np.arange(10, 60, 2))
+    uv = np.stack([xs.ravel(), ys.ravel()], 1) + 0.3
+    z = 2.0 + 0.01 * uv[:, 0]
+    d = depth_image(uv, z, (72, 128))
+    assert d.dtype == np.float32 and d.shape == (72, 128)
+    assert np.isnan(d[:5]).all() and np.isnan(d[:, 110:]).all()     # off the surface
+    inner = d[15:55, 25:95]
+    assert np.isfinite(inner).all()
+    truth = 2.0 + 0.01 * np.arange(25, 95)[None]
+    assert np.abs(inner - truth).max() < 0.02
+
+
+def test_depth_image_rejects_bad_shapes():
+    with pytest.raises(ValueError, match='uv'):
+        depth_image(np.zeros((3, 3)), np.zeros(3), (10, 10))
+    assert np.isnan(depth_image(np.zeros((2, 2)), np.zeros(2), (10, 10))).all()
+
+
+def test_score_stream_lists_unmatched_frames_and_scores_baselines():
+    rng = np.random.default_rng(0)
+    S = rng.normal(size=(5, 50, 3))
+    ids = np.arange(100, 150)
+    clouds = {0: (S[0], ids), 1: (S[1][:5], ids[:5]),                # too few points
+              3: (S[3] * 2.0 + 1.0, ids), 4: (np.full((50, 3), np.nan), ids)}
+    sc = score_stream(clouds, ids, S)
+    assert sc.unscored == [1, 2, 4]
+    assert sc.e3d[0] < 1e-12 and sc.e3d[3] < 1e-9         # similarity-aligned per frame
+    assert np.isnan(sc.e3d[[1, 2, 4]]).all()
+    # a static answer scores exactly the static baseline, a flat one the flat baseline
+    static = score_stream({f: (S[0], ids) for f in range(5)}, ids, S)
+    assert np.allclose(static.e3d, static.static)
+    flat = score_stream({f: (flat_shape(S[0]), ids) for f in range(5)}, ids, S)
+    assert np.allclose(flat.e3d, flat.flat)
+    # ids absent from the ground truth are ignored, never matched
+    other = score_stream({0: (S[0], ids + 1000)}, ids, S)
+    assert other.unscored == [0, 1, 2, 3, 4]
