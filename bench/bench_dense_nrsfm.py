@@ -83,16 +83,17 @@ def scaling() -> list[dict]:
 
 def online_latency() -> list[dict]:
     """Reconstructor ``mode: online``: ms per frame after the first window, against P."""
-    from nrsfm_ros.core.nrsfm import OnlineNRSfM
+    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
     rows = []
     for P in (1_000, 10_000, 30_000):
         d = dense_tracks('face', 60, P)
         window = 15
-        online = OnlineNRSfM(window=window)
+        online = StreamNRSfM(mode='online', window=window)
+        ids = np.arange(d['W'].shape[1])
         ms = []
         for f in range(60):
             t = time.perf_counter()
-            online.push(d['W'][2 * f:2 * f + 2].T)
+            online.push(ids, d['W'][2 * f:2 * f + 2].T)
             ms.append(1e3 * (time.perf_counter() - t))
         after = np.array(ms[window + 1:])
         rows.append({'table': 'online', 'P': P, 'window_ms': max(ms),

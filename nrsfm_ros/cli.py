@@ -197,7 +197,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     write_summary(out, summary, table)
     print(table)
     print(f'outputs: {out_bag} (bag), {out}/summary.md, {out}/summary.json, PLY and PNG in {out}')
-    missing = [t for t in ('nrsfm/tracks', 'nrsfm/points', 'registration/aligned',
+    missing = [t for t in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
                            'scene_flow/points') if summary['outputs'].get(t, 0) < seq.S.shape[0]]
     if live.get('graph_exit'):
         raise CliError(f"node(s) exited during the run: {live['graph_exit']}")

@@ -5,7 +5,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.metrics import e3d_frobenius, e3d_normalized
-from nrsfm_ros.core.nrsfm import WindowNRSfM, reconstruct
+from nrsfm_ros.core.nrsfm import reconstruct
+from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
 from tests_helpers import low_rank_sequence
 
 
@@ -39,14 +40,15 @@ def test_visibility_missing_entries_are_ignored():
 
 def test_window_emits_one_shape_per_frame():
     W, S, _ = low_rank_sequence(K=2, F=40)
-    win = WindowNRSfM(window=20, rank=2)
+    win = StreamNRSfM(mode='window', window=20, rank=2)
+    ids = np.arange(W.shape[1])
     out = []
     for f in range(40):
-        got = win.push(W[2 * f:2 * f + 2].T)
+        got = win.push(ids, W[2 * f:2 * f + 2].T)
         assert len(got) == (0 if f < 19 else 20 if f == 19 else 1)
         out += got
     assert [o.index for o in out] == list(range(40))
-    S_hat = np.stack([o.S * o.scale for o in out])
+    S_hat = np.stack([o.X for o in out])
     assert e3d_frobenius(S_hat, S, 'frame', scale=True) < 0.12  # measured 0.089
 
 
@@ -222,19 +224,19 @@ def test_amp_exact_on_rigid_data_and_invariant_to_frame_order():
 def test_online_emits_one_shape_per_frame_in_constant_time():
     import time
 
-    from nrsfm_ros.core.nrsfm import OnlineNRSfM
     W, S, _ = low_rank_sequence(K=2, F=60, P=2000)
-    on = OnlineNRSfM(window=30, rank=2)
+    on = StreamNRSfM(mode='online', window=30, rank=2)
+    ids = np.arange(W.shape[1])
     out, times = [], []
     for f in range(60):
         t = time.perf_counter()
-        got = on.push(W[2 * f:2 * f + 2].T)
+        got = on.push(ids, W[2 * f:2 * f + 2].T)
         if f >= 30:
             times.append(time.perf_counter() - t)
         assert len(got) == (0 if f < 29 else 30 if f == 29 else 1)
         out += got
     assert [o.index for o in out] == list(range(60))
-    S_hat = np.stack([o.S * o.scale for o in out])
+    S_hat = np.stack([o.X for o in out])
     # the online frames are as good as the initial window that gave their basis
     window = e3d_frobenius(S_hat[:30], S[:30], 'frame', scale=True)
     online = e3d_frobenius(S_hat[30:], S[30:], 'frame', scale=True)

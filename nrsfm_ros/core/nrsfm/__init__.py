@@ -11,11 +11,10 @@ from .bmm import bmm, smsr
 from .cdf import cdf
 from .hdsm import hdsm
 from .factorization import low_rank, rigid
-from .online import OnlineNRSfM
 from .planar import planar
 from .va import va
 from .result import NRSfMResult, check_tracks
-from .window import WindowNRSfM
+from .stream import StreamNRSfM
 
 METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'rigid': rigid,
@@ -39,5 +38,5 @@ def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'bmm',
     return METHODS[method](W, V, **params)
 
 
-__all__ = ['METHODS', 'NRSfMResult', 'OnlineNRSfM', 'WindowNRSfM', 'check_tracks', 'low_rank',
+__all__ = ['METHODS', 'NRSfMResult', 'StreamNRSfM', 'check_tracks', 'low_rank',
            'reconstruct', 'rigid']
