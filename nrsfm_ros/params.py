@@ -48,7 +48,7 @@ class Params:
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:
             raise ValueError(f'unknown parameter(s): {sorted(unknown)}')
-        new = replace(self, **changes)
+        new = replace(self, **{k: _typed(k, v, getattr(self, k)) for k, v in changes.items()})
         errors = new.check()
         if errors:
             raise ValueError('; '.join(reason for _, reason in errors))
@@ -58,10 +58,33 @@ class Params:
         return asdict(self)
 
 
+def _typed(name: str, value: Any, current: Any) -> Any:
+    """``value`` as the type of the parameter (an int is a valid float), else a ValueError."""
+    kind = type(current)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, kind) and (kind is bool or not isinstance(value, bool)):
+        return value
+    raise ValueError(f'{name}={value!r}: expected a {kind.__name__}, got a '
+                     f'{type(value).__name__}')
+
+
 def rule(default: Any, check: Callable[[Any], str | None] | None = None,
          doc: str = '') -> Any:
     from dataclasses import field
     return field(default=default, metadata={'rule': check, 'doc': doc})
+
+
+def _queue_size() -> Any:
+    return rule(64, _at_least(1), 'live: messages each input subscription may hold while the '
+                'node is busy')
+
+
+def _queue_policy() -> Any:
+    return rule('keep_latest', _one_of('keep_latest', 'keep_all'),
+                'live: a full input queue discards its oldest message (keep_latest; counted '
+                'as dropped on /diagnostics) or holds the subscription until there is room '
+                '(keep_all: reliable publishers are slowed instead)')
 
 
 @dataclass(frozen=True)
@@ -95,6 +118,8 @@ class TrackerParams(Params):
                                       'visibility 0')
     publish_flow: bool = rule(True, None, 'publish the dense flow image')
     reliable: bool = rule(False, None, 'reliable QoS on the camera input (default best effort)')
+    queue_size: int = _queue_size()
+    queue_policy: str = _queue_policy()
 
     def mfof_config(self):
         from .core.tracking.mfof import MFOFConfig
@@ -126,6 +151,8 @@ class ReconstructorParams(Params):
                                '(a window or batch not yet full) after this long without tracks '
                                '(0: never)')
     reliable: bool = rule(True, None, 'reliable QoS on the tracks input')
+    queue_size: int = _queue_size()
+    queue_policy: str = _queue_policy()
 
 
 @dataclass(frozen=True)
@@ -160,6 +187,8 @@ class RegistrarParams(Params):
                                 'also try the depth-mirrored source (orthographic NRSfM has a '
                                 'depth reflection ambiguity) on the first cloud and every '
                                 '10th, and keep the better fit')
+    queue_size: int = _queue_size()
+    queue_policy: str = _queue_policy()
 
     def check(self) -> list[tuple[str, str]]:
         errors = super().check()
@@ -175,6 +204,8 @@ class SceneFlowParams(Params):
                       'object: camera ego-motion removed; camera: raw difference')
     marker_stride: int = rule(50, _at_least(1), 'one arrow per marker_stride points')
     marker_scale: float = rule(0.1, _positive, 'arrow length per (m/s)')
+    queue_size: int = _queue_size()
+    queue_policy: str = _queue_policy()
 
 
 NODE_PARAMS: dict[str, type[Params]] = {

@@ -19,6 +19,7 @@ from .core.depth import depth_image
 from .core.registration import register
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
+from .core.tracking.reference_flow import reference_pixels
 from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
@@ -27,6 +28,8 @@ from .params import (Params, ReconstructorParams, RegistrarParams, SceneFlowPara
                      TrackerParams)
 
 Output = tuple[str, str, Any]
+
+MIN_IMAGE_SIDE = 16     # px: smaller camera images are rejected by the tracker
 
 PC2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
@@ -51,8 +54,10 @@ class Stats:
     processed: int = 0
     published: int = 0
     malformed: int = 0
+    failed: int = 0
     dropped: int = 0
     last_error: str = ''
+    errors: dict[str, int] = field(default_factory=dict)   # '<input kind>:<field or type>'
     latencies: deque = field(default_factory=lambda: deque(maxlen=100))
     stamps: deque = field(default_factory=lambda: deque(maxlen=100))
 
@@ -64,6 +69,35 @@ class Stats:
 
     def latency_ms(self) -> float:
         return 1000.0 * float(np.mean(self.latencies)) if self.latencies else 0.0
+
+    def count_error(self, key: str, text: str) -> bool:
+        """Count one error of kind ``key``; True the first time that kind is seen."""
+        first = key not in self.errors
+        self.errors[key] = self.errors.get(key, 0) + 1
+        self.last_error = text
+        return first
+
+
+class ProcessingError(MessageError):
+    """Any exception other than MessageError raised while processing one input message,
+    contained by :meth:`Processor.handle` (``field`` is the input kind, ``value`` the
+    exception type)."""
+
+
+def error_key(kind: str, err: MessageError) -> str:
+    """The kind an error is counted under: ``<input>:<field>`` or ``<input>:<exception type>``."""
+    return f'{kind}:{err.value}' if isinstance(err, ProcessingError) else f'{kind}:{err.field}'
+
+
+# The input rule of every cloud a stage reads (pointcloud2.check_cloud): required fields, and
+# optional ones checked when present.
+CLOUD_INPUTS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    'tracks': (('u', 'v', 'visibility', 'track_id'), ('rgb', 'occlusion')),
+    'points': (('x', 'y', 'z'), ('track_id', 'rgb')),
+    'reference': (('x', 'y', 'z'), ('track_id',)),
+}
+# positions beyond this (pixels or metres) are not sensor data: such clouds are rejected
+MAX_COORDINATE = 1e6
 
 
 class Processor:
@@ -81,17 +115,33 @@ class Processor:
         """Apply a validated parameter set (subclasses rebuild state where it depends on it)."""
         self.params = params
 
+    def recover(self, kind: str, err: Exception) -> None:
+        """After an unexpected exception in ``on_<kind>``: put the state back in order
+        (subclasses whose state a half-done update could corrupt override this)."""
+
     def handle(self, kind: str, msg: Any) -> list[Output]:
-        """Dispatch ``msg`` of input ``kind``; counts, times and records errors."""
+        """Dispatch ``msg`` of input ``kind``; counts, times and records errors.
+
+        Raises only MessageError: a rejected input (counted ``malformed``) or a
+        :class:`ProcessingError` wrapping any other exception (counted ``failed``); both are
+        counted by kind in ``stats.errors`` and the processor stays usable."""
         self.stats.received += 1
         self.stats.stamps.append(time.monotonic())
         t0 = time.perf_counter()
         try:
+            if kind in CLOUD_INPUTS:
+                pc2.check_cloud(msg, *CLOUD_INPUTS[kind], limit=MAX_COORDINATE)
             out = getattr(self, f'on_{kind}')(msg)
         except MessageError as err:
             self.stats.malformed += 1
-            self.stats.last_error = str(err)
+            self.stats.count_error(error_key(kind, err), str(err))
             raise
+        except Exception as err:  # contained: one bad message never takes the node down
+            self.stats.failed += 1
+            wrapped = ProcessingError(kind, type(err).__name__, str(err) or repr(err))
+            self.stats.count_error(error_key(kind, wrapped), str(wrapped))
+            self.recover(kind, err)
+            raise wrapped from err
         self.stats.latencies.append(time.perf_counter() - t0)
         self.stats.processed += 1
         self.stats.published += len(out)
@@ -120,6 +170,30 @@ class TrackerProcessor(Processor):
         self.params = params
         self.tracker = self._make_tracker()
 
+    def restart(self) -> None:
+        """A fresh tracker whose next frame becomes a new reference; MFOF ids continue with the
+        next epoch, so no id of the old reference is reused."""
+        epoch = getattr(self.tracker, 'epoch', None)
+        self.tracker = self._make_tracker()
+        if epoch is not None and hasattr(self.tracker, 'epoch'):
+            self.tracker.epoch = epoch
+        self._rgb = None
+
+    def recover(self, kind: str, err: Exception) -> None:
+        self.restart()     # a half-done step or reference change leaves no usable state
+
+    def _check_trackable(self, grey: np.ndarray) -> None:
+        """Skip (as malformed) frames too small or without >= 4 trackable pixels: they would
+        leave the tracker without a reference or force a re-selection onto them."""
+        h, w = grey.shape
+        if h < MIN_IMAGE_SIDE or w < MIN_IMAGE_SIDE:
+            raise MessageError('height/width', (h, w), f'image smaller than {MIN_IMAGE_SIDE} px')
+        p = self.params
+        try:
+            reference_pixels(grey, p.mask, p.stride, p.min_std)
+        except ValueError as err:
+            raise MessageError('data', 'untrackable frame', f'skipped: {err}') from err
+
     def on_image(self, msg: Any) -> list[Output]:
         return self._track(img_io.image_to_array(msg), str(msg.encoding), msg.header)
 
@@ -128,11 +202,11 @@ class TrackerProcessor(Processor):
         return self._track(arr, enc, msg.header)
 
     def _track(self, arr: np.ndarray, encoding: str, header: Any) -> list[Output]:
-        grey = img_io.to_mono8(arr, encoding)
+        grey = np.ascontiguousarray(img_io.to_mono8(arr, encoding), np.uint8)
+        self._check_trackable(grey)
         ref = self.tracker.reference
         if ref is not None and grey.shape != ref.shape:
-            raise MessageError('height/width', grey.shape,
-                               f'image size changed from the reference {ref.shape}')
+            self.restart()          # a new image size starts a new reference
         tf = self.tracker.step(grey)
         ids = self.tracker.ids
         if self._rgb is None or self._rgb.size != ids.size or tf.index == 0 \
@@ -279,14 +353,18 @@ class RegistrarProcessor(Processor):
         self.reference_ids: np.ndarray | None = None
 
     def on_reference(self, msg: Any) -> list[Output]:
-        ref = pc2.read_xyz(msg)
-        if ref.shape[0] < 3:
-            raise MessageError('width', ref.shape[0], 'reference needs at least 3 finite points')
-        self.reference = ref
-        self.reference_ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0] \
+        xyz = pc2.read_xyz(msg, skip_nans=False)
+        ok = np.isfinite(xyz).all(axis=1)
+        if ok.sum() < 3:
+            raise MessageError('width', int(ok.sum()), 'reference needs at least 3 finite points')
+        ids = pc2.read_fields(msg, ('track_id',), np.uint32)[ok, 0] \
             if 'track_id' in pc2.field_names(msg) else None
-        self._tree = cKDTree(ref)
+        ref = xyz[ok]
+        tree = cKDTree(ref)
+        # everything read and checked: now the state changes, all at once
+        self.reference, self.reference_ids, self._tree = ref, ids, tree
         self.reference_frame = str(msg.header.frame_id)
+        self._checks, self._last_T = 0, None
         return []
 
     def on_points(self, msg: Any) -> list[Output]:
@@ -405,15 +483,17 @@ class SceneFlowProcessor(Processor):
         ok = np.isfinite(X).all(axis=1)
         X, ids = X[ok], ids[ok]
         stamp = stamp_ns(msg.header)
-        prev, self._prev = self._prev, (stamp, X, ids)
+        prev = self._prev
         if prev is None or stamp <= prev[0]:
             # first cloud (or time went backwards): zero flow, so every input has an output
             v = np.zeros_like(X)
-            pts = X
+            pts, out_ids = X, ids
         else:
             sf = scene_flow(prev[1], prev[2], X, ids, (stamp - prev[0]) * 1e-9,
                             frame=self.params.frame)
-            pts, v, ids = sf.points, sf.velocity, sf.ids
+            pts, v, out_ids = sf.points, sf.velocity, sf.ids
+        self._prev = (stamp, X, ids)
+        ids = out_ids
         pts32, v32 = pts.astype(np.float32), v.astype(np.float32)
         cloud = pc2.to_msg({'x': pts32[:, 0], 'y': pts32[:, 1], 'z': pts32[:, 2],
                             'vx': v32[:, 0], 'vy': v32[:, 1], 'vz': v32[:, 2],
@@ -447,13 +527,15 @@ def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,
     values = {'rate_hz': f'{stats.rate_hz():.2f}', 'latency_ms': f'{stats.latency_ms():.2f}',
               'received': str(stats.received), 'processed': str(stats.processed),
               'published': str(stats.published), 'dropped': str(stats.dropped),
-              'malformed': str(stats.malformed), 'last_error': stats.last_error}
+              'malformed': str(stats.malformed), 'failed': str(stats.failed),
+              'errors': ', '.join(f'{k}={n}' for k, n in sorted(stats.errors.items())),
+              'last_error': stats.last_error}
     values.update(extra or {})
-    level = 0 if not stats.malformed and not stats.dropped else 1
+    level = 0 if not (stats.malformed or stats.dropped or stats.failed) else 1
     status = factory.make('diagnostic_msgs/msg/DiagnosticStatus',
                           level=bytes([level]) if factory.backend == 'rclpy' else level,
                           name=f'nrsfm_ros: {node}',
-                          message='ok' if level == 0 else 'malformed or dropped input',
+                          message='ok' if level == 0 else 'malformed, failed or dropped input',
                           hardware_id=node,
                           values=[factory.make('diagnostic_msgs/msg/KeyValue', key=k, value=v)
                                   for k, v in values.items()])

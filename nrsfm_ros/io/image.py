@@ -13,6 +13,8 @@ import numpy as np
 from .errors import MessageError
 from .msgtypes import MsgFactory
 
+MAX_IMAGE_SIDE = 16384     # px: larger images (and CameraInfo sizes) are rejected
+
 # encoding -> (numpy base type, channels)
 ENCODINGS: dict[str, tuple[str, int]] = {
     'rgb8': ('u1', 3), 'bgr8': ('u1', 3), 'rgba8': ('u1', 4), 'bgra8': ('u1', 4),
@@ -34,6 +36,9 @@ def image_to_array(msg: Any) -> np.ndarray:
     if height <= 0 or width <= 0:
         raise MessageError('height' if height <= 0 else 'width', min(height, width),
                            'image must be non-empty')
+    if height > MAX_IMAGE_SIDE or width > MAX_IMAGE_SIDE:
+        raise MessageError('height/width', (height, width),
+                           f'larger than {MAX_IMAGE_SIDE} px a side')
     if step < row_bytes:
         raise MessageError('step', step, f'smaller than width*channels*size = {row_bytes}')
     buf = np.frombuffer(msg.data, dtype=np.uint8)
@@ -101,11 +106,19 @@ def compressed_to_array(msg: Any) -> tuple[np.ndarray, str]:
     if not any(k in fmt for k in ('jpeg', 'jpg', 'png')):
         raise MessageError('format', msg.format, 'expected a jpeg or png CompressedImage')
     buf = np.frombuffer(msg.data, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error as err:
+        raise MessageError('data', f'{buf.size} bytes', f'could not decode as {fmt}: {err}') \
+            from err
     if img is None:
         raise MessageError('data', f'{buf.size} bytes', f'could not decode as {fmt}')
     if img.ndim == 2:
         return img, 'mono8' if img.dtype == np.uint8 else '16UC1'
+    if img.dtype != np.uint8:       # 16-bit colour PNG: keep the high byte
+        img = (img >> 8).astype(np.uint8) if img.dtype == np.uint16 else None
+        if img is None:
+            raise MessageError('data', fmt, 'decoded to an unsupported pixel type')
     if img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     return img, 'bgr8'
@@ -128,10 +141,21 @@ def array_to_compressed(img: np.ndarray, encoding: str, factory: MsgFactory, sta
 
 
 def camera_info_K(msg: Any) -> np.ndarray:
-    """3x3 intrinsics from a CameraInfo (raises if unset or invalid)."""
+    """3x3 intrinsics from a CameraInfo: every entry finite, fx, fy > 0, and (when the image size
+    is set) the principal point inside the image; raises MessageError naming the field."""
     k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
-    if k.size != 9 or k[0] <= 0 or k[4] <= 0:
-        raise MessageError('k', list(k), 'CameraInfo has no valid intrinsics (fx, fy must be > 0)')
+    if k.size != 9:
+        raise MessageError('k', k.size, 'expected 9 intrinsic entries')
+    if not np.isfinite(k).all():
+        raise MessageError('k', k.tolist(), 'intrinsics must be finite')
+    if k[0] <= 0 or k[4] <= 0:
+        raise MessageError('k', [k[0], k[4]], 'focal lengths fx, fy must be > 0')
+    w, h = int(msg.width), int(msg.height)
+    if not (0 <= w <= MAX_IMAGE_SIDE and 0 <= h <= MAX_IMAGE_SIDE):
+        raise MessageError('width/height', (w, h), f'image size must be in 0..{MAX_IMAGE_SIDE}')
+    if w > 0 and h > 0 and not (0 <= k[2] <= w and 0 <= k[5] <= h):
+        raise MessageError('k', [k[2], k[5]], f'principal point (cx, cy) outside the {w}x{h} '
+                           'image')
     return k.reshape(3, 3)
 
 

@@ -196,3 +196,46 @@ def to_msg(points: np.ndarray | Mapping[str, np.ndarray], factory: MsgFactory, s
         MSGTYPE, header=factory.header(stamp_ns, frame_id), height=height, width=width,
         fields=fields, is_bigendian=False, point_step=points.dtype.itemsize,
         row_step=points.dtype.itemsize * width, data=points.view(np.uint8), is_dense=is_dense)
+
+
+def check_cloud(msg: Any, required: Sequence[str], optional: Sequence[str] = (),
+                limit: float = np.inf) -> None:
+    """The input rule of every cloud a node reads (raises MessageError naming the field).
+
+    A cloud is rejected, never repaired, when its layout does not parse, a ``required`` field is
+    missing, a field it uses (``required`` and the ``optional`` ones present) has ``count`` != 1,
+    a used numeric field other than ``rgb`` holds +-inf or a magnitude above ``limit``, or
+    ``track_id`` is not an integer field of at most 32 bits or repeats a value.  NaN is allowed: it is the PointCloud2 convention for "no
+    value" and each stage skips such points.
+    """
+    points = read_points(msg).reshape(-1)
+    present = set(points.dtype.names or ())
+    for name in required:
+        if name not in present:
+            raise MessageError('fields', sorted(present), f'missing required field {name!r}')
+    used = [n for n in (*required, *optional) if n in present]
+    for name in used:
+        col = points[name]
+        if col.ndim != 1:
+            raise MessageError(f'fields[{name}].count', int(np.prod(col.shape[1:])),
+                               'expected count 1')
+        if name == 'rgb' or col.dtype.kind != 'f' or not col.size:
+            continue
+        with np.errstate(invalid='ignore'):
+            big = np.abs(col.astype(np.float64)) > limit
+        if big.any():
+            worst = col[big][0]
+            raise MessageError(name, f'{int(big.sum())} value(s) like {worst}',
+                               'infinite values are rejected (NaN marks a missing value)'
+                               if np.isinf(worst) else f'magnitude above {limit:g}')
+    if 'track_id' in used:
+        kind = points.dtype['track_id']
+        if kind.kind not in 'iu' or kind.itemsize > 4:
+            raise MessageError('fields[track_id].datatype', str(kind),
+                               'track ids must be an integer field of at most 32 bits')
+    if 'track_id' in used and points.size:
+        ids = points['track_id']
+        unique = np.unique(ids).size
+        if unique != ids.size:
+            raise MessageError('track_id', f'{ids.size - unique} duplicate(s)',
+                               'track ids must be unique within a cloud')

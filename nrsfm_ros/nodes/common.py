@@ -1,13 +1,19 @@
-"""Shared node plumbing: parameters with on-set validation, QoS, diagnostics, error counting."""
+"""Shared node plumbing: parameters with on-set validation, QoS, bounded input queues,
+diagnostics, contained and counted errors."""
 from __future__ import annotations
 
 import signal
+import threading
+from collections import deque
+from collections.abc import Callable
 from dataclasses import fields
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -15,7 +21,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from ..io.errors import MessageError
 from ..io.msgtypes import RclpyFactory, rclpy_class
 from ..params import NODE_PARAMS, Params
-from ..processing import TOPICS, Processor, diagnostics_msg
+from ..processing import TOPICS, Processor, diagnostics_msg, error_key
 
 # Keep-last 64 rather than 10: the reconstructor publishes a whole window (15+ clouds) at once
 # when its window first fills, and a depth of 10 drops part of that burst.
@@ -27,9 +33,63 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 SENSOR = qos_profile_sensor_data
 
 
+class InputQueue:
+    """The bounded input queue of a node: one FIFO in arrival order, at most ``size(kind)``
+    messages per subscription kind.  A full kind under ``keep_latest`` discards its oldest
+    message (counted by ``on_drop``); under ``keep_all`` ``put`` waits until there is room."""
+
+    def __init__(self, size: Callable[[], int], policy: Callable[[], str],
+                 on_drop: Callable[[str], None]) -> None:
+        self._items: deque[tuple[str, Any]] = deque()
+        self._counts: dict[str, int] = {}
+        self._size, self._policy, self._on_drop = size, policy, on_drop
+        self._cond = threading.Condition()
+        self.closed = False
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, kind: str, msg: Any) -> None:
+        with self._cond:
+            while not self.closed and self._counts.get(kind, 0) >= self._size():
+                if self._policy() == 'keep_all':
+                    self._cond.wait(0.1)
+                    continue
+                oldest = next(i for i, (k, _) in enumerate(self._items) if k == kind)
+                del self._items[oldest]
+                self._counts[kind] -= 1
+                self._on_drop(kind)
+            if self.closed:
+                return
+            self._items.append((kind, msg))
+            self._counts[kind] = self._counts.get(kind, 0) + 1
+            self._cond.notify_all()
+
+    def get(self, timeout: float) -> tuple[str, Any] | None:
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(timeout)
+            if not self._items:
+                return None
+            kind, msg = self._items.popleft()
+            self._counts[kind] -= 1
+            self._cond.notify_all()
+            return kind, msg
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
 class ProcessorNode(Node):
     """A node around one processor: declares the processor's parameters (same names as the
-    YAML and the core), validates changes, subscribes its inputs, publishes its outputs."""
+    YAML and the core), validates changes, subscribes its inputs, publishes its outputs.
+
+    Subscription callbacks only queue the message (:class:`InputQueue`, parameters
+    ``queue_size`` and ``queue_policy``); one worker thread processes the queue.  Every
+    exception of a message's processing or publishing is contained: counted by kind on
+    /diagnostics, logged once per kind, and the node goes on."""
 
     def __init__(self, name: str, processor_cls: type[Processor],
                  outputs: list[tuple[str, str]], **kwargs: Any) -> None:
@@ -45,14 +105,20 @@ class ProcessorNode(Node):
         except ValueError as err:
             raise SystemExit(f'{name}: invalid parameters: {err}') from err
         self.processor = processor_cls(self.factory, params)  # type: ignore[call-arg]
+        self.lock = threading.RLock()     # the processor: worker, timers, parameter changes
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._out_pubs: dict[str, Any] = {}
         self._logged: set[str] = set()
+        self.input_group = MutuallyExclusiveCallbackGroup()
+        self.queue = InputQueue(lambda: self.processor.params.queue_size,
+                                lambda: self.processor.params.queue_policy, self._dropped)
         for kind, msgtype in outputs:  # eagerly, so discovery completes before data flows
             self.publisher(TOPICS[kind], msgtype)
         self.diag_pub = self.create_publisher(rclpy_class('diagnostic_msgs/msg/DiagnosticArray'),
                                               TOPICS['diagnostics'], RELIABLE)
         self.create_timer(1.0, self.publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name=f'{name}-worker', daemon=True)
+        self._worker.start()
 
     def _on_set_parameters(self, changes: list[Any]) -> SetParametersResult:
         params: Params = self.processor.params
@@ -60,26 +126,58 @@ class ProcessorNode(Node):
             new = params.updated({p.name: p.value for p in changes})
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
-        self.processor.set_params(new)
+        with self.lock:
+            self.processor.set_params(new)
         return SetParametersResult(successful=True)
 
     def subscribe(self, kind: str, msgtype: str, qos: QoSProfile) -> None:
         topic = TOPICS[kind]
+        events = SubscriptionEventCallbacks(
+            message_lost=lambda info: self._dropped(kind, int(info.total_count_change)))
         self.create_subscription(rclpy_class(msgtype), topic,
-                                 lambda msg: self._on_message(kind, msg), qos)
+                                 lambda msg: self.queue.put(kind, msg), qos,
+                                 callback_group=self.input_group, event_callbacks=events)
+
+    def _dropped(self, kind: str, n: int = 1) -> None:
+        self.processor.stats.dropped += n
+        self.processor.stats.count_error(f'{kind}:dropped', f'{kind}: {n} message(s) dropped '
+                                         f'(input queue full or lost in transport)')
+
+    def _work(self) -> None:
+        while not self.queue.closed:
+            item = self.queue.get(0.2)
+            if item is not None:
+                self._on_message(*item)
 
     def _on_message(self, kind: str, msg: Any) -> None:
         try:
-            outputs = self.processor.handle(kind, msg)
+            with self.lock:
+                outputs = self.processor.handle(kind, msg)
         except MessageError as err:
-            key = f'{kind}:{err.field}'
-            if key not in self._logged:  # log each kind of problem once, count all
-                self._logged.add(key)
-                self.get_logger().error(f'skipping malformed {kind} message: {err} '
-                                        '(further ones are counted on /diagnostics)')
+            self._log_once(error_key(kind, err), f'skipping {kind} message: {err}')
             return
+        except Exception as err:  # noqa: BLE001 -- handle contains; this is the last guard
+            self._failed(kind, err)
+            return
+        self.publish_outputs(outputs)
+
+    def publish_outputs(self, outputs: list[tuple[str, str, Any]]) -> None:
         for topic, msgtype, out in outputs:
-            self.publisher(topic, msgtype).publish(out)
+            try:
+                self.publisher(topic, msgtype).publish(out)
+            except Exception as err:  # noqa: BLE001 -- e.g. an out-of-range field value
+                self._failed(f'publish {topic}', err)
+
+    def _failed(self, what: str, err: Exception) -> None:
+        self.processor.stats.failed += 1
+        key = f'{what}:{type(err).__name__}'
+        self.processor.stats.count_error(key, f'{what}: {type(err).__name__}: {err}')
+        self._log_once(key, f'{what} failed: {type(err).__name__}: {err}')
+
+    def _log_once(self, key: str, text: str) -> None:
+        if key not in self._logged:  # log each kind of problem once, count all
+            self._logged.add(key)
+            self.get_logger().error(f'{text} (further ones are counted on /diagnostics)')
 
     def publisher(self, topic: str, msgtype: str, qos: QoSProfile = RELIABLE) -> Any:
         if topic not in self._out_pubs:
@@ -89,7 +187,14 @@ class ProcessorNode(Node):
     def publish_diagnostics(self) -> None:
         stamp = self.get_clock().now().nanoseconds
         self.diag_pub.publish(diagnostics_msg(self.factory, self.get_name(),
-                                              self.processor.stats, stamp))
+                                              self.processor.stats, stamp,
+                                              {'queued': str(len(self.queue))}))
+
+    def destroy_node(self) -> None:
+        self.queue.close()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(5.0)
+        super().destroy_node()
 
 
 def spin_node(make: Any, args: list[str] | None = None) -> int:
@@ -99,7 +204,10 @@ def spin_node(make: Any, args: list[str] | None = None) -> int:
     try:
         rclpy.init(args=args)
         node = make()
-        rclpy.spin(node)
+        # two threads: a subscription held by a full keep_all queue never stops the timers
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

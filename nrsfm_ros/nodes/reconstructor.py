@@ -29,8 +29,13 @@ class ReconstructorNode(ProcessorNode):
         idle = self.processor.params.idle_flush_s
         if idle > 0 and time.monotonic() - self._last_tracks >= idle:
             assert isinstance(self.processor, ReconstructorProcessor)
-            for topic, msgtype, out in self.processor.flush():
-                self.publisher(topic, msgtype).publish(out)
+            try:
+                with self.lock:
+                    outputs = self.processor.flush()
+            except Exception as err:  # noqa: BLE001 -- contained like every message
+                self._failed('flush', err)
+                return
+            self.publish_outputs(outputs)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -35,6 +35,10 @@ def scene_flow(prev_points: np.ndarray, prev_ids: np.ndarray, points: np.ndarray
     points = np.asarray(points, np.float64)
     if prev_points.shape != (len(prev_ids), 3) or points.shape != (len(ids), 3):
         raise ValueError('points/ids: expected (N, 3) points and N ids')
+    for name, v in (('prev_ids', prev_ids), ('ids', ids)):
+        if np.unique(v).size != len(v):
+            raise ValueError(f'{name}: {len(v) - np.unique(v).size} duplicated track id(s); '
+                             'ids must be unique')
     common, ip, ic = np.intersect1d(prev_ids, ids, assume_unique=True, return_indices=True)
     a, b = prev_points[ip], points[ic]
     T = np.eye(4)
