@@ -6,10 +6,13 @@ Per incoming frame (streaming, bounded latency):
 1. prediction: the motion subspace extrapolates the per-frame coefficients (constant velocity),
    giving a dense flow that seeds the data step, so large motion and occluded regions start from
    the subspace's guess, not from the previous measurement;
-2. data step: OpenCV DIS (preset by name) reference->frame, and frame->reference for the
-   forward-backward check;
-3. occlusion tensor: per reference pixel, the forward-backward inconsistency (px) and the
-   illumination-robust warping residual (high-pass intensities) give an occlusion probability;
+2. data step: the frame is warped onto the reference by the prediction and OpenCV DIS (preset
+   by name) measures the small residual flow reference->warped frame (and warped frame->
+   reference for the forward-backward check); both images are contrast-normalised first (local
+   zero mean, unit deviation), so shading changes and foreshortening do not bias the data step;
+3. occlusion tensor: per reference pixel, the forward-backward inconsistency of the residual flow
+   (px) and the dissimilarity 1 - ZNCC of the reference and the aligned frame in a small window
+   (invariant to gain and bias, i.e. to shading) give an occlusion probability;
    visibility = (1 - occlusion) x in-view;
 4. subspace step: the frame's coefficients are fitted to the measured flow by weighted, Huber-
    robust least squares with a temporal prior (the constant-velocity prediction); the output
@@ -21,8 +24,13 @@ Per incoming frame (streaming, bounded latency):
 
 ``track_sequence`` runs the same tracker over a whole sequence, then re-fuses every frame with
 a subspace fitted on a window centred on it (past and future frames; ``batch_rank`` images).
-When too little of the reference stays visible for ``reselect_patience`` frames, the next frame
-becomes the new reference (track ids then change: ``epoch * H * W + y * W + x``).
+When the tracked area is lost for ``reselect_patience`` frames in a row (less than
+``reselect_fraction`` of the reference in view, or less than ``collapse_fraction`` of the in-view
+part still consistent: the flow quality collapsed), the current frame becomes the new reference.
+The tracks still visible there are carried across with their ids: their sub-pixel positions in the
+new reference become their reference positions, sampled bilinearly in the new reference->frame
+flow from then on; only pixels of the new reference with no carried track within ``stride`` px
+get new ids ``epoch * H * W + y * W + x``.  Outputs list carried tracks first, then new ones.
 """
 from __future__ import annotations
 
@@ -45,14 +53,15 @@ class MFOFConfig:
     spatial_sigma: float = 2.0      # px, smoothing of the learned basis images (0: none)
     subspace_weight: float = 0.3    # beta: pull of the subspace on visible pixels
     fb_threshold: float = 2.0       # px, forward-backward error at occlusion probability 1/2
-    residual_threshold: float = 14.0  # high-pass intensity residual at probability 1/2
+    ncc_threshold: float = 0.5      # 1 - ZNCC (reference vs aligned frame) at probability 1/2
     huber_px: float = 2.0           # robust fit of the frame coefficients
     outlier_px: float = 3.0         # data further than this from the subspace loses weight
     temporal_weight: float = 0.05   # pull of the coefficients towards the prediction
     batch_rank: int = 4             # learned images in the two-sided batch pass
     backward: bool = True           # compute the frame->reference flow for the FB check
     backward_preset: str = 'fast'   # DIS preset of the backward flow (only checks consistency)
-    reselect_fraction: float = 0.35  # new reference when less of the mask stays visible ...
+    reselect_fraction: float = 0.35  # new reference when less of the mask stays in view ...
+    collapse_fraction: float = 0.1  # ... or less of the in-view part is consistent ...
     reselect_patience: int = 3      # ... for this many frames in a row
     stride: int = 1                 # output every stride-th mask pixel as a track
     mask: str = 'full'              # 'full' or 'texture'
@@ -72,21 +81,23 @@ class MFOFConfig:
             raise ValueError(f'window={self.window}: expected >= 3')
         if self.outlier_px < 0:
             raise ValueError(f'outlier_px={self.outlier_px}: expected >= 0 (0: off)')
-        for name in ('fb_threshold', 'residual_threshold', 'huber_px'):
+        for name in ('fb_threshold', 'ncc_threshold', 'huber_px'):
             if getattr(self, name) <= 0:
                 raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
         if self.subspace_weight < 0 or self.spatial_sigma < 0:
             raise ValueError('subspace_weight and spatial_sigma must be >= 0')
-        if not 0 <= self.reselect_fraction < 1:
-            raise ValueError(f'reselect_fraction={self.reselect_fraction}: expected [0, 1)')
+        for name in ('reselect_fraction', 'collapse_fraction'):
+            if not 0 <= getattr(self, name) < 1:
+                raise ValueError(f'{name}={getattr(self, name)}: expected [0, 1)')
 
 
 @dataclass(frozen=True)
 class MFOFFrame:
     """One frame's output: ``uv`` (P, 2) track positions, ``visibility`` (P,) in [0, 1],
     ``occlusion`` (P,) occlusion probability (the frame's slice of the occlusion tensor),
-    ``flow`` (H, W, 2) fused reference->frame flow, ``ids`` (P,) track ids, ``reselected`` when
-    this frame became a new reference."""
+    ``flow`` (H, W, 2) fused reference->frame flow, ``ids`` (P,) track ids (carried tracks
+    first, then the current reference's own), ``reselected`` when this frame became a new
+    reference (its tracks are then those carried across plus the new reference's own)."""
 
     index: int
     uv: np.ndarray
@@ -97,15 +108,48 @@ class MFOFFrame:
     reselected: bool = False
 
 
-def highpass(grey: np.ndarray, sigma: float = 3.0) -> np.ndarray:
-    """Intensity minus its local mean: insensitive to smooth gain/bias changes."""
+def contrast_normalise(grey: np.ndarray, sigma: float = 4.0, floor: float = 3.0
+                       ) -> np.ndarray:
+    """Local zero-mean, unit-deviation intensities (Gaussian window ``sigma``) as uint8 around
+    128: invariant to smooth gain and bias (shading); ``floor`` keeps flat areas flat."""
     g = grey.astype(np.float32)
-    return g - cv2.GaussianBlur(g, (0, 0), sigma)
+    hp = g - cv2.GaussianBlur(g, (0, 0), sigma)
+    sd = cv2.sqrt(cv2.GaussianBlur(hp * hp, (0, 0), sigma) + floor * floor)
+    return np.clip(hp / sd * 48.0 + 128.0, 0, 255).astype(np.uint8)
+
+
+def local_stats(a: np.ndarray, sigma: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Local mean and variance of a float32 image in a Gaussian window ``sigma``."""
+    m = cv2.GaussianBlur(a, (0, 0), sigma)
+    return m, np.maximum(cv2.GaussianBlur(a * a, (0, 0), sigma) - m * m, 0.0)
+
+
+def local_zncc(a: np.ndarray, b: np.ndarray, sigma: float = 2.0, eps: float = 4.0,
+               a_stats: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Zero-mean normalised cross-correlation of two float32 images in a Gaussian window: 1 for
+    images equal up to gain and bias; ``eps`` (intensity variance) makes two flat patches agree
+    and a flat patch disagree with a textured one.  ``a_stats``: ``local_stats(a, sigma)``."""
+    ma, va = a_stats if a_stats is not None else local_stats(a, sigma)
+    mb, vb = local_stats(b, sigma)
+    cov = cv2.GaussianBlur(a * b, (0, 0), sigma) - ma * mb
+    return (cov + eps) / np.sqrt((va + eps) * (vb + eps))
+
+
+def sample_bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``img`` (H, W[, C]) float32 at sub-pixel positions xy (P, 2) (border replicated)."""
+    xy = np.ascontiguousarray(xy, np.float32).reshape(1, -1, 2)
+    out = cv2.remap(img, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(xy.shape[1], *img.shape[2:])
+
+
+def _remap(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _warp(img: np.ndarray, gx: np.ndarray, gy: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    return cv2.remap(img, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    """``img`` sampled at x + flow(x) (bilinear, border replicated)."""
+    return _remap(img, gx + flow[..., 0], gy + flow[..., 1])
 
 
 @dataclass
@@ -153,11 +197,17 @@ class MFOFTracker:
         self._learned = learned
         self._basis = np.ascontiguousarray(np.concatenate([self._poly, learned]))
 
-    def _set_reference(self, grey: np.ndarray) -> None:
+    def _set_reference(self, grey: np.ndarray,
+                       carried: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Make ``grey`` the reference; ``carried`` (ids (Pc,), positions (Pc, 2) in ``grey``)
+        are tracks of the previous reference that continue with their ids."""
         c = self.config
         h, w = grey.shape
         self.epoch += 1
-        self._ref, self._ref_hp = grey, highpass(grey)
+        self._ref = grey
+        self._ref_n = contrast_normalise(grey)
+        self._ref_f = grey.astype(np.float32)
+        self._ref_stats = local_stats(self._ref_f)
         self._shape = (h, w)
         self._gx, self._gy = np.meshgrid(np.arange(w, dtype=np.float32),
                                          np.arange(h, dtype=np.float32))
@@ -166,8 +216,23 @@ class MFOFTracker:
         self._set_learned(np.zeros((0, h * w), np.float32))
         if self.epoch == 0:
             self.history_grid = self._grid
-        mask, self._lin, self._xy = reference_pixels(grey, c.mask, c.stride, c.min_std)
-        self.ids = ((self.epoch * h * w + self._lin) % 2 ** 32).astype(np.uint32)
+        mask, lin, xy = reference_pixels(grey, c.mask, c.stride, c.min_std)
+        if carried is None:
+            carried = (np.zeros(0, np.uint32), np.zeros((0, 2), np.float32))
+        self._carry_ids = np.asarray(carried[0], np.uint32)
+        self._carry_xy = np.asarray(carried[1], np.float32).reshape(-1, 2)
+        if self._carry_ids.size:
+            # new tracks only where no carried track lies within ``stride`` px
+            free = np.full((h, w), 255, np.uint8)
+            cx = np.clip(np.rint(self._carry_xy[:, 0]).astype(np.intp), 0, w - 1)
+            cy = np.clip(np.rint(self._carry_xy[:, 1]).astype(np.intp), 0, h - 1)
+            free[cy, cx] = 0
+            dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            keep = dist.ravel()[lin] >= c.stride
+            lin, xy = lin[keep], xy[keep]
+        self._lin, self._xy = lin, xy
+        own = ((self.epoch * h * w + lin) % 2 ** 32).astype(np.uint32)
+        self.ids = np.concatenate([self._carry_ids, own])
         self._mask_lin = np.flatnonzero(mask)
         # a fixed strided sample of mask pixels for the per-frame coefficient fit
         step = max(1, int(np.sqrt(self._mask_lin.size / 20000)))
@@ -184,6 +249,12 @@ class MFOFTracker:
         self._flow = np.zeros((h, w, 2), np.float32)
         self._offset = np.zeros((2, h * w), np.float32)
 
+    @property
+    def reference_xy(self) -> np.ndarray:
+        """(P, 2) sub-pixel positions of ``ids`` in the current reference frame (where their
+        colour is, for example)."""
+        return np.concatenate([self._carry_xy, self._xy])
+
     # ------------------------------------------------------------------ per frame
     def _predicted_q(self) -> np.ndarray | None:
         if len(self._q) < 2:
@@ -198,21 +269,19 @@ class MFOFTracker:
         h, w = self._shape
         return (q @ self.basis).T.reshape(h, w, 2)
 
-    def occlusion(self, grey: np.ndarray, flow: np.ndarray, back: np.ndarray | None
+    def occlusion(self, aligned: np.ndarray, flow: np.ndarray, fb_sq: np.ndarray | None
                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Occlusion probability (H, W) and in-view mask (H, W) of reference pixels for the
-        reference->frame ``flow`` (and frame->reference ``back`` for the FB check)."""
+        """Occlusion probability (H, W) and in-view mask (H, W) of reference pixels, from the
+        frame ``aligned`` onto the reference (float32 (H, W)) by the reference->frame ``flow``
+        and the squared forward-backward error ``fb_sq`` (px^2, (H, W); None: no FB check)."""
         c = self.config
         h, w = self._shape
         x, y = self._gx + flow[..., 0], self._gy + flow[..., 1]
         inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-        resid = np.abs(_warp(highpass(grey), self._gx, self._gy, flow) - self._ref_hp)
-        resid = cv2.GaussianBlur(resid, (0, 0), 1.5)
-        score = (resid / c.residual_threshold) ** 2
-        if back is not None:
-            fb = _warp(back, self._gx, self._gy, flow) + flow
-            fb = np.sqrt((fb ** 2).sum(-1))
-            score = score + (fb / c.fb_threshold) ** 2
+        dissimilar = 1.0 - local_zncc(self._ref_f, aligned, a_stats=self._ref_stats)
+        score = (dissimilar / c.ncc_threshold) ** 2
+        if fb_sq is not None:
+            score = score + fb_sq / c.fb_threshold ** 2
         score = score * score       # sharp: ~0 for inliers, 1/2 at the thresholds
         occ = score / (1.0 + score)
         return occ.astype(np.float32), inside
@@ -225,13 +294,21 @@ class MFOFTracker:
             return self._new_reference(grey)
         c = self.config
         h, w = self._shape
-        pred = self._predict()
-        u = self._fwd.calc(self._ref, grey, np.ascontiguousarray(pred))
-        back = None
-        if c.backward:
-            init = -_warp(u, self._gx, self._gy, -u)
-            back = self._bwd.calc(grey, self._ref, np.ascontiguousarray(init))
-        occ, inside = self.occlusion(grey, u, back)
+        gx, gy = self._gx, self._gy
+        pred = np.ascontiguousarray(self._predict())
+        # data step on the frame pre-warped by the prediction: DIS measures only the residual
+        # r (small, locally undistorted), so u(x) = r(x) + pred(x + r(x))
+        warped = _warp(contrast_normalise(grey), gx, gy, pred)
+        r = self._fwd.calc(self._ref_n, warped, None)
+        mx, my = gx + r[..., 0], gy + r[..., 1]
+        u = r + _remap(pred, mx, my)
+        fb_sq = None
+        if c.backward:   # FB check of the residual flow: back(x + r(x)) + r(x) ~ 0
+            back = self._bwd.calc(warped, self._ref_n, np.ascontiguousarray(-r))
+            fb = _remap(back, mx, my) + r
+            fb_sq = fb[..., 0] ** 2 + fb[..., 1] ** 2
+        aligned = _warp(grey.astype(np.float32), gx, gy, u)
+        occ, inside = self.occlusion(aligned, u, fb_sq)
         weight = ((1.0 - occ) * inside).ravel()
         w_data = weight
         d = u.reshape(-1, 2).T
@@ -254,24 +331,78 @@ class MFOFTracker:
         flow = fused.T.reshape(h, w, 2)
         self._flow = flow
         # visibility: the fused position must be in view too
-        fx, fy = self._gx + flow[..., 0], self._gy + flow[..., 1]
+        fx, fy = gx + flow[..., 0], gy + flow[..., 1]
         in_view = ((fx >= 0) & (fx <= w - 1) & (fy >= 0) & (fy <= h - 1)).ravel()
-        vis = (1.0 - occ.ravel()) * in_view
-        if vis[self._mask_lin].mean() < c.reselect_fraction:
-            self._low_visible += 1
-        else:
-            self._low_visible = 0
-        frame = MFOFFrame(self._index, self._xy + fused[:, self._lin].T, vis[self._lin],
-                          occ.ravel()[self._lin], flow, self.ids)
+        occ = occ.ravel()
+        vis = (1.0 - occ) * in_view
+        uv, vis_t, occ_t = self._tracks(flow, fused, vis, occ)
+        # the tracked area is lost when little of the reference stays in view, or the flow
+        # quality collapsed (almost nothing in view is consistent); occlusion alone is no cause
+        m_in = in_view[self._mask_lin]
+        in_frac = float(m_in.mean())
+        ok_frac = float((vis[self._mask_lin] > 0.5).sum() / max(int(m_in.sum()), 1))
+        lost = in_frac < c.reselect_fraction or ok_frac < c.collapse_fraction
+        self._low_visible = self._low_visible + 1 if lost else 0
         if self._low_visible >= c.reselect_patience:
-            self._ref = None      # the next frame becomes the new reference
-        return frame
+            return self._reselect(grey, uv, vis_t, occ_t)
+        return MFOFFrame(self._index, uv, vis_t, occ_t, flow, self.ids)
+
+    def _tracks(self, flow: np.ndarray, fused: np.ndarray, vis: np.ndarray, occ: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (P, 2), visibility and occlusion (P,) of carried then own tracks."""
+        uv = self._xy + fused[:, self._lin].T
+        vis_t, occ_t = vis[self._lin], occ[self._lin]
+        if self._carry_ids.size:
+            h, w = self._shape
+            cxy = self._carry_xy
+            cuv = cxy + sample_bilinear(flow, cxy)
+            c_in = ((cuv[:, 0] >= 0) & (cuv[:, 0] <= w - 1) & (cuv[:, 1] >= 0)
+                    & (cuv[:, 1] <= h - 1))
+            c_occ = np.clip(sample_bilinear(occ.reshape(h, w), cxy), 0.0, 1.0)
+            uv = np.concatenate([cuv, uv])
+            vis_t = np.concatenate([((1.0 - c_occ) * c_in).astype(np.float32), vis_t])
+            occ_t = np.concatenate([c_occ, occ_t])
+        return uv.astype(np.float32), vis_t.astype(np.float32), occ_t.astype(np.float32)
+
+    def _reselect(self, grey: np.ndarray, uv: np.ndarray, vis: np.ndarray, occ: np.ndarray
+                  ) -> MFOFFrame:
+        """This frame becomes the new reference; tracks visible in it (> 1/2) carry over."""
+        keep = vis > 0.5
+        self.reselect(grey, self.ids[keep], uv[keep])
+        n = int(keep.sum())
+        P = self.ids.size
+        vis_new = np.ones(P, np.float32)
+        occ_new = np.zeros(P, np.float32)
+        vis_new[:n], occ_new[:n] = vis[keep], occ[keep]
+        assert self._flow is not None
+        return MFOFFrame(self._index, self.reference_xy, vis_new, occ_new, self._flow,
+                         self.ids, True)
+
+    def reselect(self, grey: np.ndarray, ids: np.ndarray | None = None,
+                 xy: np.ndarray | None = None) -> None:
+        """Make ``grey`` (uint8 (H, W), the current frame) the new reference, carrying the
+        tracks ``ids`` at their positions ``xy`` (P, 2) in it (by default none; ids must be
+        unique current ids); the learned subspace restarts."""
+        grey = check_grey(grey, self._ref)
+        if ids is None or xy is None:
+            ids, xy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float32)
+        ids = np.asarray(ids, np.uint32)
+        xy = np.asarray(xy, np.float32).reshape(-1, 2)
+        if ids.size != xy.shape[0]:
+            raise ValueError(f'reselect: {ids.size} ids but {xy.shape[0]} positions')
+        if np.unique(ids).size != ids.size or not np.isin(ids, self.ids).all():
+            raise ValueError('reselect: ids must be unique current track ids')
+        h, w = grey.shape
+        if xy.size and not ((xy >= 0).all() and (xy[:, 0] <= w - 1).all()
+                            and (xy[:, 1] <= h - 1).all()):
+            raise ValueError('reselect: carried positions must lie in the frame')
+        self._set_reference(grey, (ids, xy))
 
     def _new_reference(self, grey: np.ndarray) -> MFOFFrame:
         self._set_reference(grey)
-        P = self._lin.size
+        P = self.ids.size
         assert self._flow is not None
-        return MFOFFrame(self._index, self._xy.copy(), np.ones(P, np.float32),
+        return MFOFFrame(self._index, self.reference_xy, np.ones(P, np.float32),
                          np.zeros(P, np.float32), self._flow, self.ids, self.epoch > 0)
 
     def _push(self, d: np.ndarray, weight: np.ndarray, fused: np.ndarray) -> None:
@@ -336,8 +467,8 @@ def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True
     two-sided pass that re-fits the subspace on a window centred on each frame (past and
     future frames) and re-fuses every frame's data with it.
 
-    Tracks are returned for the first reference only (frames after a re-selection are marked
-    invisible for those tracks), so W keeps one P."""
+    Tracks are returned for the first reference's ids (P fixed): after a re-selection those
+    carried across continue; the others keep their last position and are marked invisible."""
     import time
     t0 = time.perf_counter()
     cfg = config or MFOFConfig()
@@ -352,11 +483,19 @@ def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True
     O = np.ones((F, P), np.float32)
     reselections = [fr.index for fr in out[1:] if fr.reselected]
     last = reselections[0] if reselections else F
-    for f in range(F):
-        fr = out[min(f, last - 1)]
-        W[2 * f], W[2 * f + 1] = fr.uv[:, 0], fr.uv[:, 1]
+    order = np.argsort(ids)
+    uv = out[0].uv.copy()
+    for f, fr in enumerate(out):
         if f < last:
-            V[f], O[f] = fr.visibility, fr.occlusion
+            uv, V[f], O[f] = fr.uv, fr.visibility, fr.occlusion
+        else:   # first-reference ids still carried in this frame
+            pos = np.clip(np.searchsorted(ids, fr.ids, sorter=order), 0, P - 1)
+            j = order[pos]
+            hit = ids[j] == fr.ids
+            uv = uv.copy()
+            uv[j[hit]] = fr.uv[hit]
+            V[f, j[hit]], O[f, j[hit]] = fr.visibility[hit], fr.occlusion[hit]
+        W[2 * f], W[2 * f + 1] = uv[:, 0], uv[:, 1]
     if smooth and last > 3 and cfg.rank > 0:
         hist = tracker.history[:last - 1]       # frames 1..last-1 of the first reference
         fused = _two_sided(tracker, hist)
