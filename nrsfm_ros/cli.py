@@ -78,6 +78,12 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument('--loop', action='store_true')
     rp.add_argument('--clock', action='store_true', help='publish /clock (use_sim_time)')
     rp.add_argument('--topics', nargs='*', default=None)
+    rp.add_argument('--wait-for-subscribers', type=int, default=1, metavar='N',
+                    help='before publishing, wait until every topic has N subscribers matched '
+                    '(topics nobody subscribes to are not waited for; 0: do not wait; '
+                    'default 1)')
+    rp.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
+                    help='longest wait for subscribers, seconds (default 10)')
 
     pr = add('process', 'run the node pipeline offline over a bag (no DDS)')
     pr.add_argument('bag')
@@ -170,8 +176,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except (CliError, ValueError, FileNotFoundError, FileExistsError, LookupError,
             RuntimeError, OSError) as err:
-        print(f'error: {err}', file=sys.stderr)
+        print(f'error: {_one_line(err)}', file=sys.stderr)
         return 2
+    except Exception as err:  # noqa: BLE001 -- bad input never ends in a traceback
+        print(f'error: {type(err).__name__}: {_one_line(err)}', file=sys.stderr)
+        return 3
+
+
+def _one_line(err: BaseException) -> str:
+    return ' '.join(str(err).split()) or type(err).__name__
 
 
 # ------------------------------------------------------------------ verbs
@@ -266,6 +279,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     import rclpy
 
     from .live import Recorder
+    if not args.duration >= 0:
+        raise CliError(f'--duration {args.duration}: must be >= 0 seconds (0: until Ctrl-C)')
     node = _rclpy_node('nrsfm_record')
     rec = Recorder(node, args.topics, args.out, storage=args.storage)
     end = time.monotonic() + args.duration if args.duration > 0 else float('inf')
@@ -283,16 +298,44 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bag_topics(bag: str, topics: Sequence[str] | None, kind: str = '') -> dict[str, str]:
+    """{topic: type} of the bag, checked against the ``topics`` asked for (names without '/')."""
+    from .io.bag import bag_info
+    have = {t: v['type'] for t, v in bag_info(bag)['topics'].items()}
+    for t in topics or ():
+        name = t.lstrip('/')
+        if name not in have:
+            raise CliError(f'topic {t!r} is not in {bag} (it has: {", ".join(sorted(have))})')
+        if kind and not have[name].endswith(kind):
+            raise CliError(f'topic {t!r} is a {have[name]}, not a {kind}')
+    return have
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from .live import replay
+    if not args.rate > 0:
+        raise CliError(f'--rate {args.rate}: must be > 0')
+    if args.wait_for_subscribers < 0 or not args.wait_timeout >= 0:
+        raise CliError('--wait-for-subscribers and --wait-timeout must be >= 0')
+    if args.topics is not None:
+        if not args.topics:
+            raise CliError('--topics: name at least one topic')
+        _bag_topics(args.bag, args.topics)
+    damage: list[str] = []
+    unheard: list[str] = []
     node = _rclpy_node('nrsfm_replay')
     try:
         counts = replay(node, args.bag, rate=args.rate, loop=args.loop, clock=args.clock,
-                        topics=args.topics)
+                        topics=args.topics, wait_for=args.wait_for_subscribers,
+                        wait_timeout=args.wait_timeout, damage=damage, unheard=unheard)
     finally:
         _shutdown(node)
+    if unheard:
+        print(f'note: no subscriber matched on {", ".join(sorted(unheard))} (published anyway)')
     for topic, n in counts.items():
         print(f'  {topic}: {n} messages')
+    if damage:
+        raise CliError(damage[0])
     return 0
 
 
@@ -303,24 +346,45 @@ def load_params(folder: str | None) -> dict[str, Any]:
     from .live import package_root
     from .params import NODE_PARAMS, from_mapping
     base = Path(folder) if folder else package_root() / 'config'
+    if not base.is_dir():
+        raise CliError(f'--params {base}: not a folder (expected one with <node>.yaml files)')
     out = {}
     for name, cls in NODE_PARAMS.items():
         path = base / f'{name}.yaml'
         if not path.exists():
             continue
-        doc = yaml.safe_load(path.read_text()) or {}
-        values = doc.get(name, {}).get('ros__parameters', {})
+        try:
+            doc = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            raise CliError(f'{path}: not valid YAML ({_one_line(err)})') from err
+        values = doc.get(name, {}).get('ros__parameters', {}) \
+            if isinstance(doc, dict) and isinstance(doc.get(name, {}), dict) else None
+        if not isinstance(values, dict):
+            raise CliError(f'{path}: expected "{name}: ros__parameters: {{name: value}}"')
         try:
             out[name] = from_mapping(cls, values)
-        except ValueError as err:
+        except (ValueError, TypeError) as err:
             raise CliError(f'{path}: {err}') from err
+    if folder and not out:
+        raise CliError(f'--params {base}: no <node>.yaml file in it '
+                       f'(expected {", ".join(f"{n}.yaml" for n in NODE_PARAMS)})')
     return out
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from .pipeline import process_bag, write_report
+    from .io.bag import bag_info
+    from .pipeline import STAGES, process_bag, write_report
     stages = [s.strip() for s in args.pipeline.split(',') if s.strip()]
-    report = process_bag(args.bag, args.out, stages, load_params(args.params),
+    if not stages:
+        raise CliError(f'--pipeline {args.pipeline!r}: name at least one of {", ".join(STAGES)}')
+    bad = [s for s in stages if s not in STAGES]
+    if bad:
+        raise CliError(f'--pipeline: unknown stage(s) {bad}; expected from {", ".join(STAGES)}')
+    params = load_params(args.params)
+    bag_info(args.bag)          # not a bag: one error line before anything is written
+    if Path(args.out).exists():
+        raise CliError(f'{args.out} exists; choose another --out or delete it')
+    report = process_bag(args.bag, args.out, stages, params,
                          progress=not args.no_progress, copy_inputs=args.copy_inputs)
     d = report.as_dict()
     if args.report:
@@ -331,10 +395,14 @@ def cmd_process(args: argparse.Namespace) -> int:
         print(f'  {topic}: {n}')
     if d['failures']:
         print(f"{len(d['failures'])} frame(s) could not be processed:")
-        for f in d['failures']:
+        for f in d['failures'][:20]:
             print(f"  stamp {f['stamp_ns']} {f['stage']} ({f['topic']}): {f['error']}")
-        return 1
-    return 0
+        if len(d['failures']) > 20:
+            print(f"  ... and {len(d['failures']) - 20} more"
+                  + (f' (all in {args.report})' if args.report else ' (see --report)'))
+    if report.damage:
+        raise CliError(report.damage[0])
+    return 1 if d['failures'] else 0
 
 
 def cmd_topic(args: argparse.Namespace) -> int:
@@ -381,24 +449,37 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .io import pointcloud2 as pc2
     from .io.bag import deserialize, read_messages
     from .io.export import render_png, write_ply
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from .io.errors import MessageError
     if args.every < 1:
         raise CliError('--every must be >= 1')
-    n = 0
-    for i, m in enumerate(read_messages(args.bag, [args.topic.lstrip('/')])):
+    _bag_topics(args.bag, [args.topic], 'PointCloud2')
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    n, bad, damage = 0, [], []
+    for i, m in enumerate(read_messages(args.bag, [args.topic.lstrip('/')], damage=damage)):
         if i % args.every:
             continue
-        msg = deserialize(m.raw, m.msgtype)
-        X = pc2.read_xyz(msg, skip_nans=False)
-        rgb = pc2.unpack_rgb(pc2.read_points(msg).reshape(-1)['rgb']) \
-            if 'rgb' in pc2.field_names(msg) else None
+        try:
+            msg = deserialize(m.raw, m.msgtype)
+            X = pc2.read_xyz(msg, skip_nans=False)
+            rgb = pc2.read_points(msg).reshape(-1)['rgb'] \
+                if 'rgb' in pc2.field_names(msg) else None
+            rgb = pc2.unpack_rgb(rgb) if rgb is not None and rgb.ndim == 1 else None
+        except MessageError as err:
+            bad.append(f'cloud {i}: {err}')
+            continue
         write_ply(out / f'cloud_{i:04d}.ply', X, rgb)
         render_png(out / f'cloud_{i:04d}.png', X, rgb)
         n += 1
-    if n == 0:
-        raise CliError(f'no messages on {args.topic} in {args.bag}')
+    if n == 0 and not damage:
+        raise CliError(f'no readable cloud on {args.topic} in {args.bag}'
+                       + (f' ({bad[0]})' if bad else ''))
     print(f'wrote {n} PLY + PNG pairs to {out}')
+    if damage:
+        raise CliError(damage[0])
+    if bad:
+        raise CliError(f'{len(bad)} cloud(s) not exported: {bad[0]}'
+                       + (f' (and {len(bad) - 1} more)' if len(bad) > 1 else ''))
     return 0
 
 
@@ -454,12 +535,26 @@ def cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_npz(path: Path) -> Any:
+    """An .npz with every array readable (a truncated file fails here, naming the path)."""
+    import zipfile
+    try:
+        d = np.load(path, allow_pickle=False)
+        if not hasattr(d, 'files'):
+            raise CliError(f'{path}: not an .npz archive (a single array)')
+        for k in d.files:
+            d[k]
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
+        raise CliError(f'{path}: not a readable .npz ({_one_line(err)})') from err
+    return d
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from .core.nrsfm import METHODS, reconstruct
     path = Path(args.tracks)
     if not path.exists():
         raise FileNotFoundError(f'{path} does not exist')
-    d = np.load(path)
+    d = _load_npz(path)
     if 'W' not in d.files:
         raise CliError(f'{path}: no array named W (keys: {d.files})')
     if args.method not in METHODS:

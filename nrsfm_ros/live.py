@@ -186,19 +186,44 @@ class Recorder:
         return dict(self.counts)
 
 
+DISCOVERY_SETTLE_S = 2.0   # after this long the ROS graph knows the running subscriptions
+
+
+def wait_for_subscribers(node: Any, pubs: dict[str, Any], n: int, timeout: float,
+                         settle: float = DISCOVERY_SETTLE_S) -> list[str]:
+    """Wait until every publisher in ``pubs`` ({topic: publisher}) has >= ``n`` matched
+    subscriptions.  A topic that nobody in the ROS graph subscribes to once discovery had
+    ``settle`` s is not waited for; gives up after ``timeout`` s.  Returns the topics left
+    with fewer than ``n`` (published anyway: nobody listens to them)."""
+    t0 = time.monotonic()
+    while True:
+        missing = [t for t, p in pubs.items() if p.get_subscription_count() < n]
+        elapsed = time.monotonic() - t0
+        if not missing or elapsed >= timeout:
+            return missing
+        if elapsed >= settle and not any(
+                node.count_subscribers(t) > pubs[t].get_subscription_count() for t in missing):
+            return missing          # every subscriber the graph knows of is matched
+        time.sleep(0.05)
+
+
 def replay(node: Any, bag: str | Path, rate: float = 1.0, loop: bool = False,
            clock: bool = False, topics: Sequence[str] | None = None,
            wait_subscribers: dict[str, int] | None = None, stop: threading.Event | None = None,
-           ) -> dict[str, int]:
+           wait_for: int = 0, wait_timeout: float = 10.0, damage: list[str] | None = None,
+           unheard: list[str] | None = None) -> dict[str, int]:
     """Publish a bag's raw messages with the recorded timing (scaled by ``rate``).
 
-    ``clock`` publishes /clock with the bag time (for ``use_sim_time``).  ``wait_subscribers``
-    ({topic: n}) waits up to 10 s for discovery before starting.  Returns counts per topic.
-    """
+    ``clock`` publishes /clock with the bag time (for ``use_sim_time``).  ``wait_for`` > 0 waits
+    (at most ``wait_timeout`` s) until every published topic has that many subscribers matched
+    (:func:`wait_for_subscribers`; the topics nobody subscribes to go to ``unheard``);
+    ``wait_subscribers`` ({topic: n}) waits up to 10 s for those topics only.  A damaged bag is
+    replayed as far as it reads and ``damage`` gets the line naming what was lost.  Returns
+    counts per topic."""
     from .io.msgtypes import rclpy_class
     if rate <= 0:
         raise ValueError(f'rate: expected > 0, got {rate}')
-    msgs = list(read_messages(bag, topics))
+    msgs = list(read_messages(bag, topics, damage=[] if damage is None else damage))
     pubs: dict[str, Any] = {}
     for m in msgs:
         if m.topic not in pubs:
@@ -206,6 +231,10 @@ def replay(node: Any, bag: str | Path, rate: float = 1.0, loop: bool = False,
                                                   _qos(m.topic in LATCHED_TOPICS, 100))
     clock_pub = node.create_publisher(rclpy_class('rosgraph_msgs/msg/Clock'), '/clock', 10) \
         if clock else None
+    if wait_for > 0:
+        left = wait_for_subscribers(node, pubs, wait_for, wait_timeout)
+        if unheard is not None:
+            unheard += left
     if wait_subscribers:
         end = time.monotonic() + 10.0
         while time.monotonic() < end and not all(

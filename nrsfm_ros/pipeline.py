@@ -3,7 +3,8 @@
 Messages are fed in log-time order; each processor's outputs go straight to the processors
 downstream of it (tracker -> reconstructor -> registrar, scene_flow), exactly the topic graph of
 the live nodes, and every output is written to the output bag.  Every input frame that a stage
-could not process is listed in the report.
+could not process is listed in the report; a damaged input bag is read as far as possible and
+the report names what it lost.
 """
 from __future__ import annotations
 
@@ -40,11 +41,13 @@ class ProcessReport:
     inputs: dict[str, int] = field(default_factory=dict)
     outputs: dict[str, int] = field(default_factory=dict)
     failures: list[dict[str, Any]] = field(default_factory=list)
+    damage: list[str] = field(default_factory=list)   # what a damaged input bag lost
     seconds: float = 0.0
     bag_duration_s: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return {'inputs': self.inputs, 'outputs': self.outputs, 'failures': self.failures,
+                'damage': self.damage,
                 'seconds': round(self.seconds, 3), 'bag_duration_s': self.bag_duration_s,
                 'realtime_factor': round(self.bag_duration_s / self.seconds, 2)
                 if self.seconds else None}
@@ -87,13 +90,23 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
                                         'error': str(err)})
                 continue
             for out_topic, out_type, out_msg in outputs:
-                out_stamp = stamp_ns(out_msg.header) if hasattr(out_msg, 'header') else stamp
-                writer.write(out_topic, out_type, out_msg, out_stamp)
-                report.outputs[out_topic] = report.outputs.get(out_topic, 0) + 1
-                feed(out_topic, out_msg, out_stamp, writer)
+                emit(out_topic, out_type, out_msg, stamp, writer, stage)
+
+    def emit(topic: str, msgtype: str, msg: Any, stamp: int, writer: BagWriter,
+             stage: str) -> None:
+        out_stamp = stamp_ns(msg.header) if hasattr(msg, 'header') else stamp
+        try:
+            writer.write(topic, msgtype, msg, out_stamp)
+        except Exception as err:  # noqa: BLE001 -- e.g. a value the CDR type cannot hold
+            report.failures.append({'stage': f'{stage} (write)', 'topic': topic,
+                                    'stamp_ns': out_stamp,
+                                    'error': f'{type(err).__name__}: {err}'})
+            return
+        report.outputs[topic] = report.outputs.get(topic, 0) + 1
+        feed(topic, msg, out_stamp, writer)
 
     with BagWriter(out_path, storage) as writer:
-        for i, m in enumerate(read_messages(in_path)):
+        for i, m in enumerate(read_messages(in_path, damage=report.damage)):
             report.inputs[m.topic] = report.inputs.get(m.topic, 0) + 1
             if copy_inputs:
                 writer.write(m.topic, m.msgtype, m.raw, m.stamp_ns)
@@ -110,11 +123,14 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
         if 'reconstructor' in procs:
             rec = procs['reconstructor']
             assert isinstance(rec, ReconstructorProcessor)
-            for out_topic, out_type, out_msg in rec.flush():
-                stamp = stamp_ns(out_msg.header)
-                writer.write(out_topic, out_type, out_msg, stamp)
-                report.outputs[out_topic] = report.outputs.get(out_topic, 0) + 1
-                feed(out_topic, out_msg, stamp, writer)
+            try:
+                flushed = rec.flush()
+            except Exception as err:  # noqa: BLE001 -- contained like every message
+                flushed = []
+                report.failures.append({'stage': 'reconstructor (flush)', 'topic': '',
+                                        'stamp_ns': 0, 'error': f'{type(err).__name__}: {err}'})
+            for out_topic, out_type, out_msg in flushed:
+                emit(out_topic, out_type, out_msg, 0, writer, 'reconstructor')
     if progress:
         sys.stderr.write('\n')
     report.seconds = time.perf_counter() - t0

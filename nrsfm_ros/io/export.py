@@ -47,20 +47,36 @@ def read_ply(path: str | Path) -> np.ndarray:
         if parts[:1] == ['element']:
             in_vertex = parts[1] == 'vertex'
             if in_vertex:
-                count = int(parts[2])
+                try:
+                    count = int(parts[2])
+                except (IndexError, ValueError) as err:
+                    raise ValueError(f'{path}: bad element line {h!r}') from err
         elif parts[:1] == ['property'] and in_vertex:
             if parts[1] == 'list':
                 raise ValueError(f'{path}: list properties in the vertex element are unsupported')
+            if len(parts) < 3 or parts[1] not in types:
+                raise ValueError(f'{path}: unsupported property line {h!r}')
             props.append((parts[2], types[parts[1]]))
+    names = [n for n, _ in props]
+    if not {'x', 'y', 'z'} <= set(names):
+        raise ValueError(f'{path}: the vertex element has no x, y, z properties ({names})')
     if fmt == 'ascii':
-        rows = body.decode().split('\n')[:count]
-        arr = np.array([r.split()[:len(props)] for r in rows], dtype=np.float64)
-        idx = [n for n, _ in props]
-        return arr[:, [idx.index('x'), idx.index('y'), idx.index('z')]]
+        rows = [r.split() for r in body.decode('ascii', 'replace').splitlines() if r.strip()]
+        if len(rows) < count or any(len(r) < len(props) for r in rows[:count]):
+            raise ValueError(f'{path}: truncated: header says {count} vertices, the file has '
+                             f'{sum(len(r) >= len(props) for r in rows[:count])} complete ones')
+        try:
+            arr = np.array([r[:len(props)] for r in rows[:count]], dtype=np.float64)
+        except ValueError as err:
+            raise ValueError(f'{path}: a vertex row is not numeric ({err})') from err
+        return arr.reshape(count, len(props))[:, [names.index(a) for a in 'xyz']]
     order = {'binary_little_endian': '<', 'binary_big_endian': '>'}.get(fmt)
     if order is None:
         raise ValueError(f'{path}: unsupported PLY format {fmt!r}')
     dt = np.dtype([(n, order + t) for n, t in props])
+    if len(body) < dt.itemsize * count:
+        raise ValueError(f'{path}: truncated: header says {count} vertices, the file holds '
+                         f'{len(body) // dt.itemsize}')
     arr = np.frombuffer(body[:dt.itemsize * count], dtype=dt)
     return np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
 
