@@ -107,12 +107,14 @@ class TrackerParams(Params):
                                 'flow for the forward-backward check')
     fb_threshold: float = rule(2.0, _positive, 'mfof: forward-backward error (px) at '
                                'occlusion probability 1/2')
-    residual_threshold: float = rule(14.0, _positive, 'mfof: high-pass warping residual at '
-                                     'occlusion probability 1/2')
+    ncc_threshold: float = rule(0.5, _positive, 'mfof: 1 - local ZNCC of the reference and the '
+                                'aligned frame at occlusion probability 1/2')
     outlier_px: float = rule(3.0, _non_negative, 'mfof: data further than this from the '
                              'subspace loses weight (0: off)')
     reselect_fraction: float = rule(0.35, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
-                                    'mfof: new reference when less of it stays visible')
+                                    'mfof: new reference when less of it stays in view')
+    collapse_fraction: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
+                                    'mfof: ... or less of the in-view part stays consistent')
     reselect_patience: int = rule(3, _at_least(1), 'mfof: ... for this many frames in a row')
     occlusion_threshold: float = rule(25.0, _positive, 'reference: photometric residual for '
                                       'visibility 0')

@@ -211,8 +211,13 @@ class TrackerProcessor(Processor):
         ids = self.tracker.ids
         if self._rgb is None or self._rgb.size != ids.size or tf.index == 0 \
                 or getattr(tf, 'reselected', False):
+            # colour of each track where it is in this (reference) frame: carried tracks
+            # sit at sub-pixel positions, new ones on the pixel grid
             rgb = img_io.to_rgb8(arr, encoding)
-            self._rgb = pc2.pack_rgb(rgb.reshape(-1, 3)[ids.astype(np.int64) % grey.size])
+            h, w = grey.shape
+            x = np.clip(np.rint(tf.uv[:, 0]).astype(np.int64), 0, w - 1)
+            y = np.clip(np.rint(tf.uv[:, 1]).astype(np.int64), 0, h - 1)
+            self._rgb = pc2.pack_rgb(rgb[y, x])
         stamp, frame = stamp_ns(header), str(header.frame_id)
         fields = {'u': tf.uv[:, 0].astype(np.float32), 'v': tf.uv[:, 1].astype(np.float32),
                   'track_id': ids, 'visibility': tf.visibility.astype(np.float32),
