@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from .result import NRSfMResult, check_tracks
 
@@ -29,30 +30,136 @@ def impute_low_rank(W: np.ndarray, V: np.ndarray, rank: int, iterations: int = 2
     return X
 
 
-def metric_upgrade(M_hat: np.ndarray) -> np.ndarray:
-    """Corrective A (3x3) making each 2x3 block of M_hat A scaled-orthonormal (METHODS §1.1).
+_TRIL = np.tril_indices(3)
+_QIDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))  # q11 q12 q13 q22 q23 q33
 
-    Solves for Q = A A^T from  a Q a^T - b Q b^T = 0,  a Q b^T = 0  per frame and a mean-scale
-    constraint, by linear least squares; Q is projected onto the PSD cone.
-    """
+
+def _upgrade_system(M_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear constraints C q = d on the 6 unknowns of the symmetric Q (METHODS §1.1):
+    a Q a^T - b Q b^T = 0 and a Q b^T = 0 per frame, and the mean of a Q a^T + b Q b^T is 2."""
     a, b = M_hat[0::2], M_hat[1::2]
     F = a.shape[0]
 
     def rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        # coefficients of the 6 unknowns (q11 q12 q13 q22 q23 q33) in x Q y^T
+        # coefficients of (q11 q12 q13 q22 q23 q33) in x Q y^T
         return np.stack([x[:, 0] * y[:, 0], x[:, 0] * y[:, 1] + x[:, 1] * y[:, 0],
                          x[:, 0] * y[:, 2] + x[:, 2] * y[:, 0], x[:, 1] * y[:, 1],
                          x[:, 1] * y[:, 2] + x[:, 2] * y[:, 1], x[:, 2] * y[:, 2]], axis=1)
 
     aa, bb, ab = rows(a, a), rows(b, b), rows(a, b)
-    A_sys = np.vstack([aa - bb, ab, np.sqrt(F) * (aa + bb).mean(axis=0, keepdims=True) / 2])
-    rhs = np.zeros(A_sys.shape[0])
-    rhs[-1] = np.sqrt(F)
-    q = np.linalg.lstsq(A_sys, rhs, rcond=None)[0]
-    Q = np.array([[q[0], q[1], q[2]], [q[1], q[3], q[4]], [q[2], q[4], q[5]]])
+    C = np.vstack([aa - bb, ab, np.sqrt(F) * (aa + bb).mean(axis=0, keepdims=True) / 2])
+    d = np.zeros(C.shape[0])
+    d[-1] = np.sqrt(F)
+    return C, d
+
+
+def _psd_least_squares(C: np.ndarray, d: np.ndarray, Q0: np.ndarray) -> np.ndarray:
+    """argmin ||C vec(Q) - d|| over Q = L L^T (L lower-triangular, 6 parameters), by
+    Levenberg-Marquardt from the Cholesky factor of the positive definite Q0."""
+    def residual(p: np.ndarray) -> np.ndarray:
+        L = np.zeros((3, 3))
+        L[_TRIL] = p
+        return C @ (L @ L.T)[_QIDX] - d
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        L = np.zeros((3, 3))
+        L[_TRIL] = p
+        J = np.empty((C.shape[0], 6))
+        for k, (i, j) in enumerate(zip(*_TRIL)):
+            E = np.zeros((3, 3))
+            E[i, j] = 1.0
+            dQ = E @ L.T + L @ E.T           # d(L L^T) / d L_ij
+            J[:, k] = C @ dQ[_QIDX]
+        return J
+
+    sol = least_squares(residual, np.linalg.cholesky(Q0)[_TRIL], jac=jacobian, method='lm',
+                        xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=200)
+    L = np.zeros((3, 3))
+    L[_TRIL] = sol.x
+    return L @ L.T
+
+
+def depth_ratio(M_hat: np.ndarray, S_hat: np.ndarray, A: np.ndarray) -> float:
+    """Median over frames of std(depth) / rms(in-plane extent) of the upgraded reconstruction
+    (cameras from M_hat A, shape A^-1 S_hat); about 0.1-0.8 on real surfaces.  Computed from
+    the 3x3 second-moment matrix of the shape, so O(F) for any number of points."""
+    F = M_hat.shape[0] // 2
+    R2, _ = scaled_orthonormal((M_hat @ A).reshape(F, 2, 3))
+    Sc = S_hat - S_hat.mean(axis=1, keepdims=True)
+    Ainv = np.linalg.inv(A)
+    C = Ainv @ (Sc @ Sc.T / Sc.shape[1]) @ Ainv.T          # shape covariance, 3 x 3
+    r3 = np.cross(R2[:, 0], R2[:, 1])
+    depth_var = np.einsum('fi,ij,fj->f', r3, C, r3)
+    inplane_var = np.einsum('fki,ij,fkj->f', R2, C, R2) / 2
+    return float(np.median(np.sqrt(np.maximum(depth_var, 0.0)
+                                   / np.maximum(inplane_var, 1e-300))))
+
+
+def metric_upgrade(M_hat: np.ndarray, S_hat: np.ndarray | None = None,
+                   max_depth_ratio: float = 1.0, degenerate_cond: float = 1e3) -> np.ndarray:
+    """Corrective A (3x3) making each 2x3 block of M_hat A scaled-orthonormal (METHODS §1.1).
+
+    1. Linear least squares for Q = A A^T from  a Q a^T - b Q b^T = 0,  a Q b^T = 0  per frame
+       and a mean-scale constraint.
+    2. If that Q is not positive definite, the PSD Q minimising the same residual:
+       Q = L L^T, Levenberg-Marquardt on the 6 entries of L, started from the linear Q projected
+       onto the PSD cone with its eigenvalues floored at 1e-3 x the largest.
+    3. Bound (needs the shape factor ``S_hat``, W ~= M_hat S_hat).  With small camera motion or
+       a (nearly) planar surface the PSD optimum is (close to) rank 2, and A^-1 stretches the
+       recovered shape along the viewing direction without limit (the bas-relief ambiguity:
+       clipping a negative eigenvalue to 1e-9 gave depths ~1000x too large).  The eigenvalues
+       of Q are floored at tau x the largest, tau >= 1e-9, and tau is raised (bisection in
+       log tau) until the implied depth extent ``depth_ratio`` (median std of depth over rms
+       in-plane extent; the rms of a frame's image extent is what the data measure) is at most
+         * ``max_depth_ratio`` (default 1.0: depth no larger than the in-plane extent) when
+           the upgrade is degenerate: cond(Q) > ``degenerate_cond`` (1e3; well-posed data give
+           1-50) or the linear Q was not positive definite;
+         * 4 x ``max_depth_ratio`` otherwise (a surface tilted by up to ~75 degrees).
+       The bound is inactive on well-conditioned data, so noise-free rigid tracks under varied
+       camera motion stay exact.  If the ratio exceeds the bound even at tau = 1 (A a scaled
+       rotation, the shape of the SVD), that A is returned.
+    """
+    M_hat = np.asarray(M_hat, dtype=float)
+    if M_hat.ndim != 2 or M_hat.shape[1] != 3 or M_hat.shape[0] % 2 or M_hat.shape[0] < 4:
+        raise ValueError(f'M_hat: expected shape (2F, 3) with F >= 2, got {M_hat.shape}')
+    if not max_depth_ratio > 0:
+        raise ValueError(f'max_depth_ratio={max_depth_ratio}: expected > 0')
+    C, d = _upgrade_system(M_hat)
+    q = np.linalg.lstsq(C, d, rcond=None)[0]
+    Q = np.zeros((3, 3))
+    Q[_QIDX] = q
+    Q = Q + np.triu(Q, 1).T
     lam, E = np.linalg.eigh(Q)
-    lam = np.maximum(lam, 1e-9 * max(lam.max(), 1e-12))
-    return E * np.sqrt(lam)
+    linear_pd = lam[0] > 1e-12 * abs(lam[-1])
+    if lam[-1] <= 0:                         # no positive direction: fall back to the scale alone
+        lam = np.ones(3)
+    if not linear_pd:
+        Q0 = (E * np.maximum(lam, 1e-3 * lam.max())) @ E.T
+        lam, E = np.linalg.eigh(_psd_least_squares(C, d, Q0))
+    lam = np.maximum(lam, 0.0)
+    top = max(float(lam[-1]), 1e-300)
+
+    def corrective(tau: float) -> np.ndarray:
+        return E * np.sqrt(np.maximum(lam, tau * top))
+
+    tau_min = 1e-9
+    A = corrective(tau_min)
+    if S_hat is None:
+        return A
+    degenerate = (not linear_pd) or lam[0] < top / degenerate_cond
+    bound = max_depth_ratio * (1.0 if degenerate else 4.0)
+    if depth_ratio(M_hat, S_hat, A) <= bound:
+        return A
+    if depth_ratio(M_hat, S_hat, corrective(1.0)) > bound:
+        return corrective(1.0)
+    lo, hi = np.log(tau_min), 0.0            # ratio(lo) > bound >= ratio(hi)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if depth_ratio(M_hat, S_hat, corrective(float(np.exp(mid)))) > bound:
+            lo = mid
+        else:
+            hi = mid
+    return corrective(float(np.exp(hi)))
 
 
 def scaled_orthonormal(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,6 +179,16 @@ def _centre(W: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return W - t.reshape(-1, 1), t
 
 
+def _rank3_factors(Wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rank-3 factors M_hat (2F, 3) = U3 sqrt(s3), S_hat (3, P) = sqrt(s3) V3^T of the centred
+    tracks, through the 2F x 2F Gram matrix (the full SVD of a 2F x P matrix is far slower)."""
+    lam, U = np.linalg.eigh(Wc @ Wc.T)
+    lam, U = lam[::-1][:3], U[:, ::-1][:, :3]
+    sv = np.sqrt(np.maximum(lam, 0.0))
+    S_hat = (U.T @ Wc) / np.maximum(np.sqrt(sv), 1e-300)[:, None]
+    return U * np.sqrt(sv), S_hat
+
+
 def rigid(W: np.ndarray, V: np.ndarray | None = None) -> NRSfMResult:
     """Tomasi-Kanade: rank-3 factorisation + metric upgrade; one rigid shape for all frames."""
     t0 = time.perf_counter()
@@ -85,15 +202,15 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None) -> NRSfMResult:
     else:
         Wsub = impute_low_rank(W, V, 3)
     Wc_sub, t = _centre(Wsub, np.ones((F, Wsub.shape[1])))
-    U, s, Vt = np.linalg.svd(Wc_sub, full_matrices=False)
-    M_hat = U[:, :3] * np.sqrt(s[:3])
-    A = metric_upgrade(M_hat)
+    M_hat, S_hat = _rank3_factors(Wc_sub)
+    A = metric_upgrade(M_hat, S_hat)
     R2, scale = scaled_orthonormal((M_hat @ A).reshape(F, 2, 3))
     Wf = W.reshape(F, 2, P)
     # refine shape, cameras and translations jointly (exact for noise-free data)
+    S0 = None
     for _ in range(4):
         Wc = (Wf - t[:, :, None]).reshape(2 * F, P)
-        S0 = _solve_rigid_shape(Wc, V, R2, scale)
+        S0 = _solve_rigid_shape(Wc, V, R2, scale, prior=S0)
         R2, scale = _procrustes_cameras(Wc, V, np.broadcast_to(S0, (F, 3, P)))
         pred = np.einsum('fki,ip->fkp', R2 * scale[:, None, None], S0)
         t = ((Wf - pred) * V[:, None, :]).sum(axis=2) / V.sum(axis=1)[:, None]
@@ -105,16 +222,30 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None) -> NRSfMResult:
                        iterations=4, converged=True, seconds=time.perf_counter() - t0)
 
 
-def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.ndarray
+def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.ndarray,
+                       prior: np.ndarray | None = None, prior_weight: float = 1e-4
                        ) -> np.ndarray:
+    """Least-squares rigid shape (3, P) for known cameras: per point
+    (sum_f v_fp G_f + mu_p I) S_p = sum_f v_fp sR_f^T w_fp + mu_p prior_p,  G_f = sR_f^T sR_f.
+
+    With near-identical cameras the viewing direction is observed only through the small
+    spread of the cameras, and the depth of each point would amplify noise without limit.  With
+    a ``prior`` shape (the previous estimate), mu_p = prior_weight x trace(A_p) / 2 holds each
+    point's depth there when the spread is below ~sqrt(prior_weight) rad (0.6 degrees) and is
+    negligible otherwise; the prior is a fixed point on exact data.  Without one, a 1e-9 ridge
+    keeps tracks seen in too few frames near the centroid instead of arbitrary."""
     sR = R2 * scale[:, None, None]  # F x 2 x 3
-    # normal equations per point: sum_f v_fp (sR_f^T sR_f) S_p = sum_f v_fp sR_f^T w_fp
     G = np.einsum('fki,fkj->fij', sR, sR)
-    # a small ridge keeps tracks seen in too few frames near the centroid instead of arbitrary
-    ridge = 1e-9 * float(np.trace(G.mean(axis=0)))
-    A = np.einsum('fp,fij->pij', V, G) + ridge * np.eye(3)
+    A = np.einsum('fp,fij->pij', V, G)
     Wf = Wc.reshape(-1, 2, Wc.shape[1])
     b = np.einsum('fp,fki,fkp->pi', V, sR, Wf)
+    if prior is None:
+        A = A + 1e-9 * float(np.trace(G.mean(axis=0))) * np.eye(3)
+    else:
+        mu = prior_weight * np.trace(A, axis1=1, axis2=2) / 2 \
+            + 1e-9 * float(np.trace(G.mean(axis=0)))
+        A = A + mu[:, None, None] * np.eye(3)
+        b = b + mu[:, None] * prior.T
     return np.linalg.solve(A, b[..., None])[..., 0].T
 
 
@@ -126,7 +257,9 @@ def _procrustes_cameras(Wc: np.ndarray, V: np.ndarray, S: np.ndarray
     Wf = Wc.reshape(F, 2, -1)
     SV = S * V[:, None, :]
     WSt = Wf @ SV.transpose(0, 2, 1)  # F x 2 x 3
-    SSt = S @ SV.transpose(0, 2, 1) + 1e-12 * np.eye(3)
+    SSt = S @ SV.transpose(0, 2, 1)
+    # a relative ridge: a (nearly) planar shape leaves M's normal component at 0, not arbitrary
+    SSt = SSt + (1e-12 * np.trace(SSt, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(3)
     M = np.linalg.solve(SSt, WSt.transpose(0, 2, 1)).transpose(0, 2, 1)
     R2, scale = scaled_orthonormal(M)
     return R2, scale
