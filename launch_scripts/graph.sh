@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Start the four nodes as separate processes with loopback-only DDS; Ctrl-C stops them cleanly;
-# exits non-zero if a node dies.  Feed it with: nrsfm-ros replay <bag> (another terminal).
+# restarts a node that dies (backoff; --max-restarts N, 0: stop the graph) and exits non-zero
+# only when it gives up.  Feed it with: nrsfm-ros replay <bag> (another terminal).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 . "$here/bootstrap.sh"

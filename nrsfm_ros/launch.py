@@ -1,5 +1,6 @@
 """Launch the node graph as processes (there is no ros2 launch here): python -m nrsfm_ros.launch
-[--nodes tracker,reconstructor,...] [--params DIR]."""
+[--nodes tracker,reconstructor,...] [--params DIR] [--max-restarts N].  A node that dies is
+restarted with backoff; the launcher exits non-zero only when it gives up."""
 from __future__ import annotations
 
 import argparse
@@ -28,7 +29,13 @@ def main(argv: list[str] | None = None) -> int:
         p = argparse.ArgumentParser(prog='nrsfm_ros.launch', description=__doc__)
         p.add_argument('--nodes', default=','.join(NODES))
         p.add_argument('--params', default=None, help='folder with <node>.yaml files')
+        p.add_argument('--max-restarts', type=int, default=10, metavar='N',
+                       help='restarts of one node in a row before the graph gives up and exits '
+                       'non-zero (0: a dying node stops the graph; default 10)')
         args = p.parse_args(argv)
+        if args.max_restarts < 0:
+            print(f'error: --max-restarts {args.max_restarts}: must be >= 0', file=sys.stderr)
+            return 2
         nodes = [n for n in args.nodes.split(',') if n]
         _Startup.spawning = True
         try:
@@ -41,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if _Startup.stop:
         graph.stop()
         return 0
-    return graph.wait()
+    return graph.wait(max_restarts=args.max_restarts)
 
 
 if __name__ == '__main__':

@@ -51,15 +51,22 @@ def ensure_loopback_env(env: dict[str, str] | None = None) -> dict[str, str]:
 # ------------------------------------------------------------------ graph launch
 
 class Graph:
-    """The node graph as child processes; Ctrl-C is forwarded, a dying node stops the rest."""
+    """The node graph as child processes; Ctrl-C is forwarded.  Under :meth:`wait` a node
+    that dies is restarted with exponential backoff (the launcher says so) and the graph gives
+    up, non-zero, only after ``max_restarts`` restarts of one node in a row."""
 
     def __init__(self, nodes: Sequence[str] = NODES, params_dir: Path | None = None,
                  overrides: dict[str, dict[str, Any]] | None = None, quiet: bool = False
                  ) -> None:
         env = ensure_loopback_env(dict(os.environ))
         env[LAUNCHED_ENV] = '1'       # nodes/__init__.py: Ctrl-C at startup exits 0
+        self._env = env
+        self._quiet = quiet
         params_dir = params_dir or package_root() / 'config'
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.started: dict[str, float] = {}
+        self.restarts: dict[str, int] = {}
+        self._cmds: dict[str, list[str]] = {}
         for name in nodes:
             if name not in NODES:
                 raise ValueError(f'node {name!r}: expected one of {NODES}')
@@ -70,8 +77,15 @@ class Graph:
             for k, v in (overrides or {}).get(name, {}).items():
                 val = str(v).lower() if isinstance(v, bool) else str(v)
                 cmd += ['-p', f'{k}:={val}']
-            out = subprocess.DEVNULL if quiet else None
-            self.procs[name] = subprocess.Popen(cmd, env=env, stdout=out, stderr=None)
+            self._cmds[name] = cmd
+            self.restarts[name] = 0
+            self._spawn(name)
+
+    def _spawn(self, name: str) -> None:
+        out = subprocess.DEVNULL if self._quiet else None
+        self.procs[name] = subprocess.Popen(self._cmds[name], env=self._env, stdout=out,
+                                            stderr=None)
+        self.started[name] = time.monotonic()
 
     def poll(self) -> dict[str, int]:
         """Nodes that have exited, with their return codes."""
@@ -90,21 +104,42 @@ class Graph:
                 p.wait()
         return {n: p.returncode for n, p in self.procs.items()}
 
-    def wait(self) -> int:
-        """Block until Ctrl-C or a node dies; returns the exit code for the launcher."""
+    def wait(self, max_restarts: int = 10, backoff_s: float = 0.25, max_backoff_s: float = 8.0,
+             stable_s: float = 30.0) -> int:
+        """Block until Ctrl-C (exit 0 when the nodes stop cleanly) or a node dies more than
+        ``max_restarts`` times in a row (exit 1).  A dead node is restarted after
+        ``backoff_s`` doubling per consecutive restart up to ``max_backoff_s``; a node that ran
+        ``stable_s`` before dying starts the count again."""
+        due: dict[str, float] = {}
         try:
             while True:
-                dead = self.poll()
-                if dead:
-                    self.stop()
-                    bad = {n: c for n, c in dead.items() if c != 0}
-                    for n, c in bad.items():
-                        sys.stderr.write(f'error: node {n} exited with code {c}\n')
-                    return 1 if bad or dead else 0
-                time.sleep(0.2)
+                now = time.monotonic()
+                for n, code in self.poll().items():
+                    if n in due:
+                        continue
+                    if now - self.started[n] >= stable_s:
+                        self.restarts[n] = 0
+                    if self.restarts[n] >= max_restarts:
+                        self.stop()
+                        tail = f' after {self.restarts[n]} restart(s)' if max_restarts else ''
+                        sys.stderr.write(f'error: node {n} exited with code {code}; giving up'
+                                         f'{tail}\n')
+                        return 1
+                    delay = min(backoff_s * 2 ** self.restarts[n], max_backoff_s)
+                    self.restarts[n] += 1
+                    due[n] = now + delay
+                    sys.stderr.write(f'graph: node {n} exited with code {code}; restarting in '
+                                     f'{delay:.2f} s (restart {self.restarts[n]} of '
+                                     f'{max_restarts})\n')
+                for n in [n for n, t in due.items() if now >= t]:
+                    del due[n]
+                    self._spawn(n)
+                    sys.stderr.write(f'graph: node {n} restarted (pid {self.procs[n].pid})\n')
+                time.sleep(0.1)
         except KeyboardInterrupt:
             codes = self.stop(timeout=10.0)     # a node still starting on a loaded machine
-            bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT, 130)}
+            bad = {n: c for n, c in codes.items()
+                   if n not in due and c not in (0, -signal.SIGINT, 130)}
             for n, c in bad.items():
                 sys.stderr.write(f'error: node {n} exited with code {c} on Ctrl-C\n')
             return 1 if bad else 0
@@ -192,16 +227,20 @@ DISCOVERY_SETTLE_S = 2.0   # after this long the ROS graph knows the running sub
 def wait_for_subscribers(node: Any, pubs: dict[str, Any], n: int, timeout: float,
                          settle: float = DISCOVERY_SETTLE_S) -> list[str]:
     """Wait until every publisher in ``pubs`` ({topic: publisher}) has >= ``n`` matched
-    subscriptions.  A topic that nobody in the ROS graph subscribes to once discovery had
-    ``settle`` s is not waited for; gives up after ``timeout`` s.  Returns the topics left
-    with fewer than ``n`` (published anyway: nobody listens to them)."""
-    t0 = time.monotonic()
+    subscriptions, at most ``timeout`` s.  Once some topic is matched (discovery works) and the
+    matches have not changed for ``settle`` s, a topic that nobody in the ROS graph subscribes
+    to is not waited for.  Returns the topics left with fewer than ``n`` (published anyway)."""
+    t0 = last_change = time.monotonic()
+    seen: list[int] = []
     while True:
-        missing = [t for t, p in pubs.items() if p.get_subscription_count() < n]
-        elapsed = time.monotonic() - t0
-        if not missing or elapsed >= timeout:
+        now = time.monotonic()
+        matched = [p.get_subscription_count() for p in pubs.values()]
+        if matched != seen:
+            seen, last_change = matched, now
+        missing = [t for t, m in zip(pubs, matched) if m < n]
+        if not missing or now - t0 >= timeout:
             return missing
-        if elapsed >= settle and not any(
+        if any(matched) and now - last_change >= settle and not any(
                 node.count_subscribers(t) > pubs[t].get_subscription_count() for t in missing):
             return missing          # every subscriber the graph knows of is matched
         time.sleep(0.05)

@@ -1,5 +1,5 @@
 """The live verbs as a user runs them: replay --loop --clock, topic list/hz/echo/info, record,
-and the graph launcher's clean stop and non-zero exit when a node dies."""
+and the graph launcher's clean stop and non-zero exit when it gives up on a dying node."""
 from __future__ import annotations
 
 import os
@@ -69,8 +69,8 @@ def test_graph_launcher_stops_cleanly_and_reports_dead_nodes():
     assert p.poll() is None
     p.send_signal(signal.SIGINT)
     assert p.wait(20) == 0, p.stderr.read()[-2000:]
-    p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes', 'scene_flow'],
-                         env=dict(os.environ))
+    p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes', 'scene_flow',
+                          '--max-restarts', '0'], env=dict(os.environ))
     time.sleep(3.0)
     # only this launcher's own child, never a node of another run
     out = subprocess.run(['pgrep', '-P', str(p.pid)], capture_output=True, text=True
