@@ -274,6 +274,10 @@ class ReconstructorProcessor(Processor):
         self.params = params
         self._reset()
 
+    def recover(self, kind: str, err: Exception) -> None:
+        if kind == 'tracks':          # a half-done push: start the stream again
+            self._reset()
+
     def on_camera_info(self, msg: Any) -> list[Output]:
         self.K = img_io.camera_info_K(msg)
         w, h = int(msg.width), int(msg.height)
@@ -313,6 +317,9 @@ class ReconstructorProcessor(Processor):
 
     def _emit(self, shapes: list[StreamShape]) -> list[Output]:
         """One nrsfm/points cloud and one nrsfm/depth image per shape."""
+        for index, why in self.stream.fallbacks:      # published, but by a fallback: counted
+            self.stats.count_error('tracks:fallback', f'frame {index}: {why}')
+        self.stream.fallbacks.clear()
         out: list[Output] = []
         K = self._intrinsics()
         for sh in shapes:

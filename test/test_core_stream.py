@@ -119,3 +119,35 @@ def test_score_stream_lists_unmatched_frames_and_scores_baselines():
     # ids absent from the ground truth are ignored, never matched
     other = score_stream({0: (S[0], ids + 1000)}, ids, S)
     assert other.unscored == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize('mode', ['window', 'batch'])
+def test_a_failing_solve_falls_back_and_loses_no_frame(face, mode):
+    """A batch solver that raises gives the rigid fallback (recorded per frame), never a lost
+    frame (the window runs lowrank, which this solver does not replace)."""
+    d, ids = face
+
+    def broken(W, V, method, rank):
+        raise np.linalg.LinAlgError('Singular matrix')
+    s = StreamNRSfM(mode=mode, window=6, batch_frames=6, solver=broken)
+    got = []
+    for f in range(12):
+        got += s.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])
+    got += s.flush()
+    assert [g.index for g in got] == list(range(12))
+    assert all(np.isfinite(g.X).all() for g in got)
+    if mode == 'batch':
+        assert sorted(i for i, _ in s.fallbacks) == list(range(12))
+        assert 'LinAlgError' in s.fallbacks[0][1]
+
+
+def test_frames_stuck_outside_the_window_are_published_flat(face):
+    d, ids = face
+    s = StreamNRSfM(mode='window', window=5)
+    first = s.push(ids, d['W'][:2].T)
+    assert first == []
+    s._frames.clear()                      # as if the frame had left the buffer unsolved
+    for f in range(1, 6):
+        first += s.push(ids, d['W'][2 * f:2 * f + 2].T)
+    assert [g.index for g in first] == list(range(6))
+    assert s.fallbacks[0] == (0, 'frame left the window unsolved')

@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .factorization import low_rank
+from .factorization import low_rank, rigid
 from .result import NRSfMResult
 
 MODES = ('window', 'online', 'batch')
@@ -96,6 +96,7 @@ class StreamNRSfM:
         self._basis: tuple[np.ndarray, np.ndarray] | None = None   # online: ids, (K, 3, P)
         self._R2 = np.eye(3)[:2]
         self._a = np.zeros(rank)
+        self.fallbacks: list[tuple[int, str]] = []   # (frame, why) published by a fallback
 
     @property
     def frames_seen(self) -> int:
@@ -123,7 +124,11 @@ class StreamNRSfM:
             return self._solve_batch(list(self._pending))
         if self.mode == 'online' and self._basis is not None:
             if self._new_fraction(fr) <= REBASE_FRACTION:
-                return [self._publish(self._fit_online(fr))]
+                try:
+                    return [self._publish(self._fit_online(fr))]
+                except (np.linalg.LinAlgError, ValueError, ArithmeticError) as err:
+                    self.fallbacks.append((fr.index, f'{type(err).__name__}: {err}'))
+                    return [self._publish(_flat_shape(fr))]
             self._basis = None                  # too many new tracks: re-solve the window
         if len(self._frames) < self.window:
             return []
@@ -137,10 +142,7 @@ class StreamNRSfM:
             return self._solve_batch(list(self._pending)) if self.mode == 'batch' \
                 else self._solve_window()
         # a single frame: no depth is observable; its points at the centroid's depth
-        fr = self._pending.pop(0)
-        t = fr.uv.mean(axis=0)
-        X = np.concatenate([fr.uv - t, np.zeros((fr.ids.size, 1))], axis=1)
-        return [self._publish(StreamShape(fr.index, fr.ids, X, t, 0.0))]
+        return [self._publish(_flat_shape(fr)) for fr in list(self._pending)]
 
     # ------------------------------------------------------------------ tracks -> W, V
     @staticmethod
@@ -168,8 +170,9 @@ class StreamNRSfM:
         init = None
         if self._last is not None and len(frames) == self._last[1].S.shape[0]:
             init = _warm_start(self._last[0], _shifted(self._last[1]), ids, W)
-        res = low_rank(W, V, rank=self.rank, iterations=self.iterations if init is not None
-                       else max(self.iterations, 60), init=init)
+        res = self._safe(lambda: low_rank(W, V, rank=self.rank, iterations=self.iterations
+                                          if init is not None else max(self.iterations, 60),
+                                          init=init), W, V, frames)
         self._last = (ids, res)
         out = self._emit(frames, ids, res, list(self._pending))
         if self.mode == 'online' and self._basis is None:
@@ -179,10 +182,32 @@ class StreamNRSfM:
     def _solve_batch(self, frames: list[_Frame]) -> list[StreamShape]:
         ids, W, V = self._tracks(frames)
         if len(frames) == 2:
-            res = low_rank(W, V, rank=1)
+            res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
-            res = self._solver(W, V, self.method, self.rank)
+            res = self._safe(lambda: self._solver(W, V, self.method, self.rank), W, V, frames)
         return self._emit(frames, ids, res, list(self._pending))
+
+    def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
+              frames: list[_Frame]) -> NRSfMResult:
+        """``solve()``; if it raises or returns non-finite shapes, the rigid factorisation,
+        and if that fails too, the flat shapes (the tracks at the centroid's depth).  Every
+        fallback is recorded in ``fallbacks`` with its reason, per frame."""
+        why = ''
+        for attempt in (solve, lambda: rigid(W, V)):
+            try:
+                res = attempt()
+                if np.isfinite(res.S).all() and np.isfinite(res.t).all():
+                    break
+                why = why or 'non-finite shapes'
+            except (np.linalg.LinAlgError, ValueError, FloatingPointError,
+                    ArithmeticError) as err:
+                why = why or f'{type(err).__name__}: {err}'
+        else:
+            res = _flat_result(W, V)
+        if why:
+            pending = {f.index for f in self._pending}
+            self.fallbacks += [(f.index, why) for f in frames if f.index in pending]
+        return res
 
     def _emit(self, frames: list[_Frame], ids: np.ndarray, res: NRSfMResult,
               wanted: list[_Frame]) -> list[StreamShape]:
@@ -194,6 +219,10 @@ class StreamNRSfM:
             X_all = X_all * self._reflection(frames, ids, X_all)
         shapes = []
         for fr in list(wanted):
+            if fr.index not in pos:         # left the buffer unsolved: its tracks, flat
+                self.fallbacks.append((fr.index, 'frame left the window unsolved'))
+                shapes.append(self._publish(_flat_shape(fr)))
+                continue
             i = pos[fr.index]
             col, have = _lookup(ids, fr.ids)
             shapes.append(self._publish(StreamShape(fr.index, fr.ids[have], X_all[i, col[have]],
@@ -276,6 +305,23 @@ class StreamNRSfM:
         resid = np.linalg.norm(w - t[:, None] - R2 @ S, axis=0)
         return StreamShape(fr.index, fr.ids[have], X[col[have]], t,
                            float((resid * vis).sum() / max(vis.sum(), 1e-12)))
+
+
+def _flat_shape(fr: _Frame) -> StreamShape:
+    """The frame's tracks at their centroid's depth (no depth is observable from them)."""
+    t = fr.uv.mean(axis=0)
+    return StreamShape(fr.index, fr.ids, np.concatenate([fr.uv - t, np.zeros((fr.ids.size, 1))],
+                                                        axis=1), t, 0.0)
+
+
+def _flat_result(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+    F, P = V.shape
+    Wf = W.reshape(F, 2, P)
+    t = Wf.mean(axis=2)
+    S = np.concatenate([(Wf - t[:, :, None]).transpose(0, 2, 1), np.zeros((F, P, 1))], axis=2)
+    return NRSfMResult(S=S, R=np.broadcast_to(np.eye(3), (F, 3, 3)).copy(), scale=np.ones(F),
+                       t=t, method='flat', rank=0, residual_px=float('nan'), iterations=0,
+                       converged=False, seconds=0.0)
 
 
 def _lookup(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
