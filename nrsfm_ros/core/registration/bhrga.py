@@ -34,8 +34,9 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .icp import (RegistrationResult, check_points, check_priors, denormalise, icp, kabsch,
-                  normalise_pair, rigid_result)
+from .base import (RegistrationResult, check_param, check_points, check_priors, denormalise,
+                   kabsch, normalise_pair, resolve_threshold, rigid_result)
+from .refine import polish
 
 
 @dataclass(frozen=True)
@@ -177,7 +178,7 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
           eps_end: float = 0.04, stages: int = 6, theta: float = 0.7,
           max_particles: int = 1500, iterations: int = 40, priors: np.ndarray | None = None,
           prior_mass: float = 50.0, polish_trim: float = 0.7, polish_points: int = 5000,
-          seed: int = 0) -> RegistrationResult:
+          seed: int = 0, inlier_threshold: float = 0.0) -> RegistrationResult:
     """Rigid Barnes-Hut gravitational registration of ``source`` onto ``target``.
 
     ``eps_start`` -> ``eps_end``: softening annealed geometrically over ``stages`` (units of the
@@ -198,8 +199,8 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
     if stages < 1 or iterations < 1 or max_particles < 8:
         raise ValueError(f'stages={stages}, iterations={iterations}, max_particles='
                          f'{max_particles}: expected >= 1, >= 1, >= 8')
-    if polish_trim and not 0.1 <= polish_trim <= 1:
-        raise ValueError(f'polish_trim={polish_trim}: expected 0 or in [0.1, 1]')
+    check_param('polish_trim', polish_trim)
+    threshold = resolve_threshold(X0, inlier_threshold)
     Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     prior_y = prior_x = None
     priors = check_priors(priors, len(Y0), len(X0))
@@ -235,6 +236,6 @@ def bhrga(source: np.ndarray, target: np.ndarray, eps_start: float = 0.5,
     if polish_trim > 0:
         yi = rng.choice(len(Y0), polish_points, replace=False) if len(Y0) > polish_points \
             else np.arange(len(Y0))
-        Tout = icp(Y0[yi], X0[xi], init=Tout, trim=polish_trim, max_iterations=30,
-                   max_points=0, target_tree=tree).T_target_source
-    return rigid_result(Y0, Tout, tree, xi, 'bhrga', stages, True, t0)
+        Tout = polish(Y0[yi], X0[xi], Tout, polish_trim, tree=tree, max_points=0)
+    full = tree if len(xi) == len(X0) else cKDTree(X0)
+    return rigid_result(Y0, Tout, full, threshold, 'bhrga', stages, True, t0)

@@ -32,18 +32,29 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .icp import icp_iterate, icp_levels, voxel_downsample
+from .refine import icp_iterate, icp_levels, voxel_downsample
 
 
 @dataclass(frozen=True)
 class GlobalPose:
     """Best pose T_target_source, its fine score (source points explained, soft count), the
-    score of each refined candidate, and the target's inlier mask from the density filter."""
+    score of each refined candidate, the target's inlier mask from the density filter, and
+    ``ambiguous``: a refined candidate at another pose (> ``AMBIGUOUS_DEG`` away) scores at
+    least ``AMBIGUOUS_RATIO`` of the best (the data do not tell the poses apart)."""
 
     T_target_source: np.ndarray
     score: float
     candidate_scores: np.ndarray
     target_inliers: np.ndarray
+    ambiguous: bool = False
+
+
+AMBIGUOUS_DEG = 10.0
+AMBIGUOUS_RATIO = 0.9
+
+
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
 
 
 def so3_samples(n: int) -> np.ndarray:
@@ -134,6 +145,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     tree = cKDTree(Xf)
     levels = icp_levels(Yf, Xf, 'point_to_plane', 0.02 * diag, 0)   # shared by the candidates
     best_T, scores = np.eye(4), np.zeros(len(picked))
+    poses = []
     for c, r in enumerate(picked):
         T0 = np.eye(4)
         T0[:3, :3] = Rs[r]
@@ -141,7 +153,12 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
         T = icp_iterate(levels, T0, 'point_to_plane', 30, 1e-6, np.inf, trim, 0.02 * diag)[0]
         d = tree.query(Yf @ T[:3, :3].T + T[:3, 3])[0]
         scores[c] = np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).sum()
+        poses.append(T)
         if scores[c] >= scores.max():
             best_T = T
-    return GlobalPose(T_target_source=best_T, score=float(scores.max()),
-                      candidate_scores=scores, target_inliers=keep_t)
+    best = float(scores.max())
+    ambiguous = any(scores[c] >= AMBIGUOUS_RATIO * best and
+                    rotation_angle_deg(poses[c][:3, :3], best_T[:3, :3]) > AMBIGUOUS_DEG
+                    for c in range(len(poses)))
+    return GlobalPose(T_target_source=best_T, score=best, candidate_scores=scores,
+                      target_inliers=keep_t, ambiguous=bool(ambiguous))

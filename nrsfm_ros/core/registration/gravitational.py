@@ -16,8 +16,9 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .icp import (RegistrationResult, check_points, check_priors, denormalise, icp, kabsch,
-                  normalise_pair, rigid_result)
+from .base import (RegistrationResult, check_param, check_points, check_priors, denormalise,
+                   kabsch, normalise_pair, resolve_threshold, rigid_result)
+from .refine import polish
 
 
 def forces(Y: np.ndarray, X: np.ndarray, m: np.ndarray, eps: float, chunk: int = 1024
@@ -36,7 +37,8 @@ def forces(Y: np.ndarray, X: np.ndarray, m: np.ndarray, eps: float, chunk: int =
 def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
        tolerance: float = 1e-6, eps: float = 0.15, dt: float = 0.3, damping: float = 0.3,
        max_points: int = 1000, priors: np.ndarray | None = None, prior_mass: float = 50.0,
-       seed: int = 0, polish_trim: float = 0.7) -> RegistrationResult:
+       seed: int = 0, polish_trim: float = 0.7, inlier_threshold: float = 0.0
+       ) -> RegistrationResult:
     """Rigid gravitational registration of ``source`` onto ``target``.
 
     ``eps`` softening, ``dt`` time step, ``damping`` viscosity (fraction of velocity lost per
@@ -50,8 +52,9 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
     for name, v in (('eps', eps), ('dt', dt), ('prior_mass', prior_mass)):
         if v <= 0:
             raise ValueError(f'{name}={v}: expected > 0')
-    if polish_trim and not 0.1 <= polish_trim <= 1:
-        raise ValueError(f'polish_trim={polish_trim}: expected 0 or in [0.1, 1]')
+    check_param('polish_trim', polish_trim)
+    check_param('max_iterations', max_iterations)
+    threshold = resolve_threshold(X0, inlier_threshold)
     if not 0 <= damping < 1:
         raise ValueError(f'damping={damping}: expected 0 <= damping < 1')
     rng = np.random.default_rng(seed)
@@ -95,6 +98,5 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
     Tout = denormalise(T, cx, cy, sc)
     tree = cKDTree(X0)
     if polish_trim > 0:
-        Tout = icp(Y0, X0, init=Tout, trim=polish_trim, max_iterations=30,
-                   target_tree=tree).T_target_source
-    return rigid_result(Y0, Tout, tree, None, 'ga', it, converged, t0)
+        Tout = polish(Y0, X0, Tout, polish_trim, tree=tree)
+    return rigid_result(Y0, Tout, tree, threshold, 'ga', it, converged, t0)

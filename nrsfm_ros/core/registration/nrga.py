@@ -23,20 +23,23 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .cpd import Nystrom
-from .icp import RegistrationResult, check_points, normalise_pair
+from .base import (RegistrationResult, check_param, check_points, make_result, normalise_pair,
+                   resolve_threshold)
+from .kernels import Nystrom
 
 
 def nrga(source: np.ndarray, target: np.ndarray, k: int = 8, iterations: int = 150,
          dt: float = 0.5, damping: float = 0.3, beta: float = 2.0, lam: float = 3e-3,
          eps_start: float = 0.2, eps_end: float = 0.02, max_points: int = 4000,
-         landmarks: int = 300, seed: int = 0) -> RegistrationResult:
+         landmarks: int = 300, seed: int = 0, inlier_threshold: float = 0.0
+         ) -> RegistrationResult:
     """Non-rigid gravitational registration of ``source`` (N, 3) onto ``target`` (M, 3)."""
     t0 = time.perf_counter()
     Y0 = check_points('source', source)
     X0 = check_points('target', target)
-    for name, v in (('dt', dt), ('beta', beta), ('lam', lam), ('eps_start', eps_start),
-                    ('eps_end', eps_end)):
+    check_param('beta', beta)
+    check_param('lam', lam)
+    for name, v in (('dt', dt), ('eps_start', eps_start), ('eps_end', eps_end)):
         if not v > 0:
             raise ValueError(f'{name}={v}: expected > 0')
     if not 0 <= damping < 1:
@@ -44,6 +47,7 @@ def nrga(source: np.ndarray, target: np.ndarray, k: int = 8, iterations: int = 1
     if k < 1 or iterations < 1 or max_points < 10 or landmarks < 1:
         raise ValueError(f'k={k}, iterations={iterations}, max_points={max_points}, '
                          f'landmarks={landmarks}: expected >= 1, >= 1, >= 10, >= 1')
+    threshold = resolve_threshold(X0, inlier_threshold)
     rng = np.random.default_rng(seed)
     Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
     yi = rng.choice(len(Yn), max_points, replace=False) if len(Yn) > max_points \
@@ -69,12 +73,5 @@ def nrga(source: np.ndarray, target: np.ndarray, k: int = 8, iterations: int = 1
         a = fit @ (cur + vel - Y)                                # coherent projection
         vel = Y + Phi @ a - cur
     aligned = (Yn + nys.features(Yn) @ a) * sc + cx
-    dist, corr = cKDTree(X0).query(aligned, workers=-1)
-    thr = 3 * float(np.median(dist))
-    ok = dist <= max(thr, 1e-12)
-    return RegistrationResult(T_target_source=np.eye(4), aligned=aligned,
-                              displacement=aligned - Y0, correspondences=np.where(ok, corr, -1),
-                              iterations=iterations, converged=True,
-                              residual=float(np.sqrt(np.mean(dist[ok] ** 2))),
-                              fitness=float(ok.mean()), seconds=time.perf_counter() - t0,
-                              method='nrga')
+    return make_result(Y0, aligned, np.eye(4), cKDTree(X0), threshold, 'nrga', iterations, True,
+                       t0)

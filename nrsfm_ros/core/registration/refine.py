@@ -1,0 +1,133 @@
+"""Trimmed ICP iterations, the local refinement the ICP methods, the global start and the polish
+of the gravitational methods share (a building block, not a method): voxel-grid levels, normals
+by PCA, point-to-point (Kabsch) and linearised point-to-plane steps."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .base import apply, kabsch
+
+
+def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None,
+                     at: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals by PCA of each point's k nearest neighbours (batched eigh); ``at``: only
+    for these point indices."""
+    tree = cKDTree(X) if tree is None else tree
+    k = min(k, X.shape[0])
+    _, idx = tree.query(X if at is None else X[at], k=k, workers=-1)
+    nb = X[idx] - X[idx].mean(axis=1, keepdims=True)
+    cov = np.einsum('nki,nkj->nij', nb, nb)
+    return np.linalg.eigh(cov)[1][:, :, 0]
+
+
+def voxel_downsample(X: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroid of the points in each occupied cell of a grid with edge ``voxel``."""
+    ijk = np.floor((X - X.min(0)) / voxel).astype(np.int64)
+    dims = ijk.max(0) + 1
+    _, inv, cnt = np.unique((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2],
+                            return_inverse=True, return_counts=True)
+    return np.stack([np.bincount(inv, X[:, k]) for k in range(3)], 1) / cnt[:, None]
+
+
+
+@dataclass
+class IcpLevel:
+    """One level of the coarse-to-fine iterations: (strided) source points, target points, their
+    KD-tree, target normals computed when first paired (NaN until then), the cell-edge factor."""
+
+    src: np.ndarray
+    dst: np.ndarray
+    tree: cKDTree
+    normals: np.ndarray | None
+    factor: float
+
+
+def icp_levels(src: np.ndarray, dst: np.ndarray, method: str, voxel: float, max_points: int,
+               target_tree: cKDTree | None = None) -> list[IcpLevel]:
+    """voxel > 0: grids of 4, 2, 1 x voxel (a wide basin and few points first); otherwise one
+    level on the points themselves.  Reusable across starts (see ``icp_iterate``)."""
+    levels = []
+    for f in ((4.0, 2.0, 1.0) if voxel > 0 else (0.0,)):
+        s, d = (voxel_downsample(src, f * voxel), voxel_downsample(dst, f * voxel)) \
+            if f > 0 else (src, dst)
+        if max_points and s.shape[0] > max_points:
+            s = s[np.linspace(0, s.shape[0] - 1, max_points).astype(np.intp)]
+        tree = target_tree if (f == 0 and target_tree is not None) else cKDTree(d)
+        normals = np.full(d.shape, np.nan) if method == 'point_to_plane' else None
+        levels.append(IcpLevel(s, d, tree, normals, f))
+    return levels
+
+
+def icp_iterate(levels: list[IcpLevel], T: np.ndarray, method: str, max_iterations: int,
+                tolerance: float, max_correspondence_distance: float, trim: float, voxel: float
+                ) -> tuple[np.ndarray, int, bool, float]:
+    """Trimmed ICP from ``T`` through ``levels``: (T, iterations, converged, RMSE)."""
+    total = 0
+    converged = False
+    rmse = np.inf
+    for level, lv in enumerate(levels):
+        src, dst, tree, normals, f = lv.src, lv.dst, lv.tree, lv.normals, lv.factor
+        workers = -1 if src.shape[0] > 4000 else 1      # threads cost more than small queries
+        last = level == len(levels) - 1
+        prev = np.inf
+        converged = False
+        it = 0
+        for it in range(1, max_iterations + 1):
+            moved = apply(T, src)
+            dist, idx = tree.query(moved, workers=workers)
+            keep = dist <= max_correspondence_distance
+            if trim < 1.0 and keep.sum() > 10:
+                cutoff = np.quantile(dist[keep], trim)
+                keep &= dist <= cutoff
+            if keep.sum() < 3:
+                break
+            rmse = float(np.sqrt(np.mean(dist[keep] ** 2)))
+            if method == 'point_to_point':
+                dT = kabsch(moved[keep], dst[idx[keep]])
+            else:
+                assert normals is not None
+                pairs = idx[keep]
+                todo = np.unique(pairs[np.isnan(normals[pairs, 0])])
+                if todo.size:
+                    normals[todo] = estimate_normals(dst, k=20 if f > 0 else 10, tree=tree,
+                                                     at=todo)
+                dT = point_to_plane_step(moved[keep], dst[idx[keep]], normals[idx[keep]])
+            T = dT @ T
+            # converged: the RMSE settles, or (voxel levels) the step is below 1e-4 rad (1e-3
+            # on the coarse levels) and a hundredth of the cell edge
+            small = f > 0 and np.abs(dT[:3, :3] - np.eye(3)).max() < (1e-4 if last else 1e-3) \
+                and np.abs(dT[:3, 3]).max() < 1e-2 * f * voxel
+            if abs(prev - rmse) <= tolerance * max(rmse, 1e-12) or small:
+                converged = True
+                break
+            prev = rmse
+        total += it
+    return T, total, converged, rmse
+
+
+def point_to_plane_step(A: np.ndarray, B: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Linearised point-to-plane least squares (small-angle), one Gauss-Newton step."""
+    J = np.hstack([np.cross(A, n), n])
+    r = np.einsum('ij,ij->i', B - A, n)
+    JtJ = J.T @ J                        # normal equations: 6x6, far cheaper than lstsq
+    x = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ r)
+    wx, wy, wz = x[:3]
+    Rm = np.array([[1, -wz, wy], [wz, 1, -wx], [-wy, wx, 1]])
+    U, _, Vt = np.linalg.svd(Rm)
+    T = np.eye(4)
+    T[:3, :3] = U @ Vt
+    T[:3, 3] = x[3:]
+    return T
+
+
+def polish(source: np.ndarray, target: np.ndarray, T: np.ndarray, trim: float,
+           max_iterations: int = 30, tree: cKDTree | None = None, max_points: int = 5000
+           ) -> np.ndarray:
+    """Trimmed point-to-point ICP from ``T`` (``trim`` of the closest pairs kept), on an evenly
+    strided subset of at most ``max_points`` source points (0: all): the refined T."""
+    tree = cKDTree(target) if tree is None else tree
+    return icp_iterate(icp_levels(source, target, 'point_to_point', 0.0, max_points, tree), T,
+                       'point_to_point', max_iterations, 1e-6, np.inf, trim, 0.0)[0]
