@@ -456,7 +456,8 @@ def test_planar_exact_on_a_rigid_plane_and_accurate_on_the_flag():
     Wn = d['W'] + np.random.default_rng(0).normal(0, 1.0, d['W'].shape)
     res = reconstruct(Wn, V, method='planar')
     assert res.converged and e3d_frobenius(res.S, d['S'], 'frame', scale=True) < 0.045
-    face = dense_tracks('face', 30, 1000, 'orthographic')
+    # the face over 60 frames (at 30 its orthonormality misfit, 3.8e-3, is borderline)
+    face = dense_tracks('face', 60, 1000, 'orthographic')
     assert not reconstruct(face['W'], method='planar').converged
     with pytest.raises(ValueError, match='beta'):
         reconstruct(W, method='planar', beta=0.0)
