@@ -6,6 +6,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+from .core.registration.base import PARAM_RULES as _REG
 from .core.tracking import PRESETS
 
 
@@ -131,9 +132,11 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('window', _one_of('window', 'batch', 'online'),
-                     'window: sliding window re-solved per frame; online: the first window, '
-                     'then each frame fitted alone to its shape basis; batch: whole batches')
+    mode: str = rule('batch', _one_of('window', 'batch', 'online'),
+                     'batch: batch_frames frames at a time with method (the most accurate on '
+                     'the pipeline benchmark); window: sliding window re-solved per frame '
+                     '(lowest latency); online: the first window, then each frame fitted alone '
+                     'to its shape basis')
     method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
                                        'hdsm', 'va', 'planar'),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
@@ -163,24 +166,31 @@ class RegistrarParams(Params):
                                       'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ecpd-rigid',
                                       'ecpd-nonrigid', 'ga', 'bhrga', 'nrga'),
                        'registration method')
-    max_iterations: int = rule(30, _at_least(1), 'iteration cap (ICP and CPD iterations; '
+    max_iterations: int = rule(30, _REG['max_iterations'], 'iteration cap (ICP and CPD iterations; '
                                'GA dynamics steps, which needs ~300; BH-RGA L-BFGS '
                                'iterations per softening stage)')
     max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
-    tolerance: float = rule(1e-6, _positive, 'relative RMSE change to stop')
-    trim: float = rule(0.9, _unit, 'fraction of closest pairs kept each iteration')
-    voxel: float = rule(0.0, _non_negative, 'icp*: voxel-grid edge (m) of the coarse-to-fine '
+    tolerance: float = rule(1e-6, _REG['tolerance'], 'relative RMSE change to stop')
+    trim: float = rule(0.9, _REG['trim'], 'icp*: fraction of closest pairs kept each iteration '
+                       '(about the overlap)')
+    voxel: float = rule(0.0, _REG['voxel'], 'icp*: voxel-grid edge (m) of the coarse-to-fine '
                         'levels (4, 2, 1 x voxel; centroids average the noise; 0: off)')
     init: str = rule('centroid', _one_of('centroid', 'global'),
                      'icp*: start of the first cloud and of every reflection re-check: centroid '
                      '(translation only) or global (search over all rotations, robust to '
                      'outliers and missing parts, ~1 s at 35k points); other clouds start from '
                      'the previous transform')
-    w: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
-                    'cpd: weight of the uniform outlier component')
-    beta: float = rule(2.0, _positive, 'cpd-nonrigid, ecpd-nonrigid, nrga: kernel width of '
+    w: float = rule(0.1, _REG['w'], 'cpd: weight of the uniform outlier component')
+    beta: float = rule(2.0, _REG['beta'], 'cpd-nonrigid, ecpd-nonrigid, nrga: kernel width of '
                        'the displacement field (units of the RMS radius)')
-    lam: float = rule(2.0, _positive, 'cpd-nonrigid: smoothness of the displacement field')
+    lam: float = rule(2.0, _REG['lam'], 'cpd-nonrigid: smoothness of the displacement field')
+    inlier_threshold: float = rule(0.0, _REG['inlier_threshold'],
+                                   'distance (m) of the reported fitness and inlier RMSE and of '
+                                   'the identity guard (0: 2% of the reference diagonal)')
+    identity_guard: bool = rule(True, None,
+                                'publish the unmoved cloud (identity) when the registration '
+                                'explains the reference worse than it (robust residual: mean '
+                                'of min(d, inlier_threshold)^2)')
     prior_matches: int = rule(0, _non_negative,
                               'ecpd-*, ga, bhrga: prior correspondences taken from track_id '
                               'values the cloud shares with the reference (evenly spread; 0: '

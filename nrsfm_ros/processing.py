@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from .core.nrsfm.stream import StreamNRSfM, StreamShape
 from .core.depth import depth_image
 from .core.registration import register
+from .core.registration.base import make_result, resolve_threshold, robust_residual
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
 from .core.tracking.reference_flow import reference_pixels
@@ -363,6 +364,7 @@ class RegistrarProcessor(Processor):
         self._checks = 0
         self._last_T: np.ndarray | None = None
         self.reference_ids: np.ndarray | None = None
+        self.identity_kept = 0           # clouds where the identity beat the registration
 
     def on_reference(self, msg: Any) -> list[Output]:
         xyz = pc2.read_xyz(msg, skip_nans=False)
@@ -414,17 +416,29 @@ class RegistrarProcessor(Processor):
         mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
         if p.method.startswith('icp'):
             kw['init'] = p.init
+        t0 = time.perf_counter()
+        kw['inlier_threshold'] = p.inlier_threshold
+        thr = resolve_threshold(self.reference, p.inlier_threshold)
         if p.try_reflection and (self._checks % 10 == 0):
             res = register(src, self.reference, method=p.method, **kw)
             alt = register(mirrored, self.reference, method=p.method, **kw)
-            self.last_reflected = alt.residual < res.residual
-            res = alt if self.last_reflected else res
+            cost = robust_residual(res.aligned, self._tree, thr)
+            alt_cost = robust_residual(alt.aligned, self._tree, thr)
+            self.last_reflected = alt_cost < cost
+            res, cost = (alt, alt_cost) if self.last_reflected else (res, cost)
         else:
             # consecutive clouds move little: start from the previous frame's transform
             moving = mirrored if self.last_reflected else src
             if p.method.startswith('icp') and self._last_T is not None:
                 kw['init'] = self._last_T
             res = register(moving, self.reference, method=p.method, **kw)
+            cost = robust_residual(res.aligned, self._tree, thr)
+        # never worse than doing nothing: the unmoved cloud wins when it explains the
+        # reference better on the same robust residual
+        if p.identity_guard and robust_residual(src, self._tree, thr) < cost:
+            res = make_result(src, src.copy(), np.eye(4), self._tree, thr, 'identity', 0, True,
+                              t0)
+            self.identity_kept += 1
         self._checks += 1
         self._last_T = res.T_target_source
         stamp = stamp_ns(msg.header)
