@@ -23,6 +23,8 @@ EXAMPLES = {
     'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
     'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method bmm --out shapes.npz',
     'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
+    'scene-flow': 'nrsfm-ros scene-flow rgbd/ --out flow.npz   (rgbd/color/*.png, '
+                  'rgbd/depth/*.png 16-bit mm, rgbd/intrinsics.txt)',
 }
 
 
@@ -165,13 +167,24 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument('--lam', type=float, default=None,
                     help='cpd-nonrigid: field smoothness (default 2.0)')
     rg.add_argument('--out', required=True)
+
+    sf = add('scene-flow', 'RGB-D scene flow (MSF, piecewise rigid) of a folder -> flow.npz: '
+             'flow (F-1, H, W, 3) m from the first frame to each later one, first camera '
+             'frame, NaN where unknown; valid (F-1, H, W)')
+    sf.add_argument('rgbd', help='folder with color/ (jpg/png), depth/ (16-bit PNG, mm) and '
+                    'intrinsics.txt (3x3); frames in name order')
+    sf.add_argument('--out', required=True)
+    sf.add_argument('--method', choices=('msf', 'dis', 'icp'), default='msf',
+                    help='msf (default), dis (DIS optical flow + depth) or icp (per-segment '
+                    'projective ICP)')
+    sf.add_argument('--segments', type=int, default=300, help='msf/icp: SLIC segments')
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return int(globals()[f'cmd_{args.verb}'](args) or 0)
+        return int(globals()['cmd_' + args.verb.replace('-', '_')](args) or 0)
     except KeyboardInterrupt:
         return 130
     except (CliError, ValueError, FileNotFoundError, FileExistsError, LookupError,
@@ -628,6 +641,65 @@ def cmd_register(args: argparse.Namespace) -> int:
     print(json.dumps({'method': res.method, 'iterations': res.iterations,
                       'converged': res.converged, 'residual': res.residual,
                       'fitness': res.fitness, 'seconds': round(res.seconds, 3)}))
+    return 0
+
+
+def read_rgbd_folder(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """color/ and depth/ images (name order, same count and size) and intrinsics.txt."""
+    import cv2
+    if not folder.is_dir():
+        raise FileNotFoundError(f'{folder}: not a folder')
+    kf = folder / 'intrinsics.txt'
+    if not kf.exists():
+        raise CliError(f'{kf}: missing (the 3x3 camera matrix)')
+    try:
+        K = np.loadtxt(kf, ndmin=2)
+    except ValueError as err:
+        raise CliError(f'{kf}: not a 3x3 matrix of numbers ({_one_line(err)})') from err
+    if K.shape != (3, 3):
+        raise CliError(f'{kf}: expected a 3x3 matrix, got shape {K.shape}')
+    names = {}
+    for sub, exts in (('color', ('.png', '.jpg', '.jpeg')), ('depth', ('.png',))):
+        d = folder / sub
+        if not d.is_dir():
+            raise CliError(f'{d}: missing folder')
+        names[sub] = sorted(p for p in d.iterdir() if p.suffix.lower() in exts)
+    if len(names['color']) != len(names['depth']) or len(names['color']) < 2:
+        raise CliError(f'{folder}: {len(names["color"])} color and {len(names["depth"])} depth '
+                       'images; expected the same number, at least 2')
+    colors, depths = [], []
+    for c, d in zip(names['color'], names['depth']):
+        img = cv2.imread(str(c), cv2.IMREAD_COLOR)
+        dep = cv2.imread(str(d), cv2.IMREAD_UNCHANGED)
+        if img is None or dep is None:
+            raise CliError(f'{c if img is None else d}: not a readable image')
+        if dep.dtype != np.uint16 or dep.ndim != 2:
+            raise CliError(f'{d}: expected a 16-bit single-channel PNG (millimetres), got '
+                           f'{dep.dtype} with shape {dep.shape}')
+        if img.shape[:2] != dep.shape or img.shape[:2] != cv2.imread(
+                str(names['color'][0]), cv2.IMREAD_COLOR).shape[:2]:
+            raise CliError(f'{c}: size {img.shape[:2]} differs from its depth {dep.shape} or '
+                           'from the first frame')
+        colors.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+        depths.append(dep)
+    return colors, depths, K
+
+
+def cmd_scene_flow(args: argparse.Namespace) -> int:
+    from .core.sceneflow.msf import MSFConfig, dis_depth_flow, msf_sequence
+    colors, depths, K = read_rgbd_folder(Path(args.rgbd))
+    if args.segments < 1:
+        raise CliError(f'--segments {args.segments}: expected >= 1')
+    if args.method == 'dis':
+        flow, valid, st = dis_depth_flow(colors, depths, K)
+    else:
+        cfg = MSFConfig(segments=args.segments)
+        if args.method == 'icp':
+            cfg = MSFConfig(segments=args.segments, photometric_weight=0.0, smoothness=0.0)
+        flow, valid, st = msf_sequence(colors, depths, K, cfg)
+    np.savez_compressed(args.out, flow=flow, valid=valid, K=K)
+    print(f'wrote {args.out}: flow {flow.shape} m ({args.method}), '
+          f'{100 * valid.mean():.1f}% valid, {st["seconds_per_frame"]:.3f} s/frame')
     return 0
 
 

@@ -212,8 +212,17 @@ class RegistrarParams(Params):
 
 @dataclass(frozen=True)
 class SceneFlowParams(Params):
+    method: str = rule('nrsfm', _one_of('nrsfm', 'msf'),
+                       'nrsfm: difference of consecutive nrsfm/points clouds; msf: RGB-D '
+                       'multi-frame scene flow (piecewise rigid) from camera/image_raw + '
+                       'camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info')
     frame: str = rule('object', _one_of('object', 'camera'),
-                      'object: camera ego-motion removed; camera: raw difference')
+                      'nrsfm: object (camera ego-motion removed) or camera (raw difference); '
+                      'msf publishes the camera frame (its camera pose is unknown)')
+    stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')
+    segments: int = rule(300, _at_least(1), 'msf: SLIC segments of the reference frame')
+    sync_tolerance_s: float = rule(0.005, _non_negative, 'msf: image and depth stamps closer '
+                                   'than this are one RGB-D frame')
     marker_stride: int = rule(50, _at_least(1), 'one arrow per marker_stride points')
     marker_scale: float = rule(0.1, _positive, 'arrow length per (m/s)')
     queue_size: int = _queue_size()

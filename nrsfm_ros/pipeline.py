@@ -27,9 +27,10 @@ STAGES = ('tracker', 'reconstructor', 'registrar', 'scene_flow')
 
 # input topic -> [(stage, kind)]
 ROUTES: dict[str, list[tuple[str, str]]] = {
-    TOPICS['image']: [('tracker', 'image')],
+    TOPICS['image']: [('tracker', 'image'), ('scene_flow', 'image')],
     TOPICS['image_compressed']: [('tracker', 'image_compressed')],
-    TOPICS['camera_info']: [('reconstructor', 'camera_info')],
+    TOPICS['camera_info']: [('reconstructor', 'camera_info'), ('scene_flow', 'camera_info')],
+    TOPICS['depth']: [('scene_flow', 'depth')],   # scene_flow method msf (RGB-D)
     TOPICS['tracks']: [('reconstructor', 'tracks')],
     TOPICS['points']: [('registrar', 'points'), ('scene_flow', 'points')],
     TOPICS['reference']: [('registrar', 'reference')],

@@ -494,7 +494,14 @@ def transform_matrix(msg: Any) -> np.ndarray:
 
 
 class SceneFlowProcessor(Processor):
-    """nrsfm/points -> scene_flow/points (x, y, z, vx, vy, vz in m/s) + arrow markers."""
+    """scene_flow/points (x, y, z, vx, vy, vz in m/s, track_id) + arrow markers.
+
+    ``method='nrsfm'``: from consecutive nrsfm/points clouds (matched by track id).
+    ``method='msf'``: RGB-D MSF (core.sceneflow.msf) from camera/image_raw,
+    camera/depth/image_raw and camera/camera_info, image and depth paired by stamp; the points
+    are the surface pixels of the first frame (every ``stride``-th, track_id = y * width + x)
+    at their current positions, the velocity their camera-frame displacement since the previous
+    RGB-D frame over its time step (core.sceneflow.definition)."""
 
     name = 'scene_flow'
     params_cls = SceneFlowParams
@@ -502,8 +509,97 @@ class SceneFlowProcessor(Processor):
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
         self._prev: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._reset_msf()
 
+    def _reset_msf(self) -> None:
+        self._K: np.ndarray | None = None
+        self._msf: Any = None
+        self._pending: dict[str, dict[int, tuple[Any, np.ndarray]]] = {'image': {}, 'depth': {}}
+        self._msf_prev: tuple[int, np.ndarray] | None = None
+
+    def set_params(self, params: Params) -> None:
+        changed = any(getattr(params, k) != getattr(self.params, k)
+                      for k in ('method', 'stride', 'segments'))
+        super().set_params(params)
+        if changed:
+            self._prev = None
+            self._reset_msf()
+
+    # ---------------------------------------------------------------- msf (RGB-D)
+    def on_camera_info(self, msg: Any) -> list[Output]:
+        if self.params.method != 'msf':
+            return []
+        self._K = img_io.camera_info_K(msg)
+        return []
+
+    def on_image(self, msg: Any) -> list[Output]:
+        if self.params.method != 'msf':
+            return []
+        arr = img_io.image_to_array(msg)
+        grey = img_io.to_mono8(arr, str(msg.encoding)).astype(np.float32)
+        return self._pair('image', msg.header, grey)
+
+    def on_depth(self, msg: Any) -> list[Output]:
+        if self.params.method != 'msf':
+            return []
+        enc = str(msg.encoding)
+        if enc not in ('32FC1', '16UC1', 'mono16'):
+            raise MessageError('encoding', enc, 'depth must be 32FC1 (m) or 16UC1 (mm)')
+        from .core.sceneflow.msf import depth_metres
+        return self._pair('depth', msg.header, depth_metres(img_io.image_to_array(msg)))
+
+    def _pair(self, kind: str, header: Any, arr: np.ndarray) -> list[Output]:
+        stamp = stamp_ns(header)
+        other = 'depth' if kind == 'image' else 'image'
+        tol = int(self.params.sync_tolerance_s * 1e9)
+        match = min(self._pending[other], key=lambda t: abs(t - stamp), default=None)
+        if match is None or abs(match - stamp) > tol:
+            self._pending[kind][stamp] = (header, arr)
+            for k in self._pending:      # keep a few unmatched frames, the newest
+                for t in sorted(self._pending[k])[:-4]:
+                    del self._pending[k][t]
+            return []
+        _, other_arr = self._pending[other].pop(match)
+        for k in self._pending:          # older unmatched frames will never match now
+            self._pending[k] = {t: v for t, v in self._pending[k].items() if t > stamp}
+        grey, depth = (arr, other_arr) if kind == 'image' else (other_arr, arr)
+        if grey.shape != depth.shape:
+            raise MessageError('depth', f'{depth.shape[1]}x{depth.shape[0]}',
+                               f'differs from the image size {grey.shape[1]}x{grey.shape[0]}')
+        if self._K is None:
+            raise MessageError('camera_info', None, 'no CameraInfo received yet (needed for msf)')
+        return self._msf_frame(stamp, str(header.frame_id), grey, depth)
+
+    def _msf_frame(self, stamp: int, frame: str, grey: np.ndarray,
+                   depth: np.ndarray) -> list[Output]:
+        from .core.sceneflow.msf import MSF, MSFConfig
+        prev = self._msf_prev
+        if self._msf is not None and (grey.shape != self._msf_shape or prev is None
+                                      or stamp <= prev[0]):
+            self._msf = None             # new size or time went backwards: start over
+        if self._msf is None:
+            self._msf = MSF(self._K, MSFConfig(segments=self.params.segments))
+            self._msf_shape = grey.shape
+            self._msf.step(grey, depth)
+            X0 = self._msf._X0
+            sel = np.zeros(grey.shape, bool)
+            sel[::self.params.stride, ::self.params.stride] = True
+            self._msf_sel = np.nonzero((sel & np.isfinite(X0).all(-1)).ravel())[0]
+            pts = X0.reshape(-1, 3)[self._msf_sel].astype(np.float64)
+            v = np.zeros_like(pts)
+        else:
+            fr = self._msf.step(grey, depth)
+            pts = (self._msf._X0 + fr.flow).reshape(-1, 3)[self._msf_sel].astype(np.float64)
+            v = (pts - prev[1]) / ((stamp - prev[0]) * 1e-9)
+        self._msf_prev = (stamp, pts)
+        keep = np.isfinite(pts).all(1) & np.isfinite(v).all(1)
+        return self._outputs(pts[keep], v[keep], self._msf_sel[keep].astype(np.uint32), stamp,
+                             frame)
+
+    # ---------------------------------------------------------------- nrsfm (clouds)
     def on_points(self, msg: Any) -> list[Output]:
+        if self.params.method != 'nrsfm':
+            return []
         X = pc2.read_xyz(msg, skip_nans=False)
         ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0]
         ok = np.isfinite(X).all(axis=1)
@@ -519,15 +615,18 @@ class SceneFlowProcessor(Processor):
                             frame=self.params.frame)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids
         self._prev = (stamp, X, ids)
-        ids = out_ids
+        return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id))
+
+    def _outputs(self, pts: np.ndarray, v: np.ndarray, ids: np.ndarray, stamp: int,
+                 frame: str) -> list[Output]:
         pts32, v32 = pts.astype(np.float32), v.astype(np.float32)
         cloud = pc2.to_msg({'x': pts32[:, 0], 'y': pts32[:, 1], 'z': pts32[:, 2],
                             'vx': v32[:, 0], 'vy': v32[:, 1], 'vz': v32[:, 2],
                             'track_id': ids.astype(np.uint32)},
-                           self.factory, stamp, str(msg.header.frame_id))
+                           self.factory, stamp, frame)
         return [(TOPICS['scene_flow'], PC2, cloud),
                 (TOPICS['markers'], 'visualization_msgs/msg/MarkerArray',
-                 self._markers(pts, v, stamp, str(msg.header.frame_id)))]
+                 self._markers(pts, v, stamp, frame))]
 
     def _markers(self, pts: np.ndarray, v: np.ndarray, stamp: int, frame: str) -> Any:
         f = self.factory

@@ -1,10 +1,13 @@
-"""scene_flow node: nrsfm/points -> scene_flow/points (vx, vy, vz m/s), scene_flow/markers."""
+"""scene_flow node -> scene_flow/points (x, y, z, vx, vy, vz m/s, track_id), scene_flow/markers.
+
+Inputs by ``method``: nrsfm (default): nrsfm/points; msf: camera/image_raw +
+camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info, paired by stamp."""
 from __future__ import annotations
 
 import sys
 
 from ..processing import SceneFlowProcessor
-from .common import RELIABLE, ProcessorNode, spin_node
+from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
 
 
 class SceneFlowNode(ProcessorNode):
@@ -12,7 +15,12 @@ class SceneFlowNode(ProcessorNode):
         super().__init__('scene_flow', SceneFlowProcessor,
                          [('scene_flow', 'sensor_msgs/msg/PointCloud2'),
                           ('markers', 'visualization_msgs/msg/MarkerArray')])
-        self.subscribe('points', 'sensor_msgs/msg/PointCloud2', RELIABLE)
+        if self.processor.params.method == 'msf':
+            self.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
+            self.subscribe('depth', 'sensor_msgs/msg/Image', SENSOR)
+            self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
+        else:
+            self.subscribe('points', 'sensor_msgs/msg/PointCloud2', RELIABLE)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -11,8 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..registration.icp import kabsch
-
 
 @dataclass(frozen=True)
 class SceneFlow:
@@ -43,6 +41,7 @@ def scene_flow(prev_points: np.ndarray, prev_ids: np.ndarray, points: np.ndarray
     a, b = prev_points[ip], points[ic]
     T = np.eye(4)
     if frame == 'object' and common.size >= 3:
+        from ..registration.icp import kabsch   # lazily: MSF needs no registration code
         T = kabsch(a, b)
         a = a @ T[:3, :3].T + T[:3, 3]
     return SceneFlow(points=b, velocity=(b - a) / dt, ids=common.astype(np.uint32), T_cur_prev=T)

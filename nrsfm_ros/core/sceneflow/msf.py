@@ -1,0 +1,660 @@
+"""MSF: RGB-D multi-frame scene flow with piecewise rigid motion (METHODS §11.2).
+
+The reference frame is over-segmented (:func:`slic`: intensity, image position and depth); every
+segment s gets one rigid motion ``T_s`` (camera-ref -> camera-c coordinates) per frame c, found
+by damped Gauss-Newton on
+
+    sum_p w_I rho(I_c(pi(T_s X_p)) - I_ref(p)) / sigma_I
+  + sum_p w_D rho(n_c . (T_s X_p - V_c(pi(T_s X_p)))) / sigma_D      (projective point-to-plane ICP)
+  + nu sum_(s,s') w_ss' |T_s P - T_s' P|^2 / sigma_D                 (neighbour rigidity, at points
+                                                                      P shared by the two segments)
+
+(rho: Huber by IRLS weights), coarse to fine over an image pyramid, with se(3) increments and a
+sparse 6S x 6S normal-equation solve.  Frames are processed from the reference to every later
+frame, each warm-started from the previous one; when too little of the reference stays
+consistent a new reference is selected and the flow is chained through it.  The output is the
+camera-frame flow ``X_c - X_ref`` of every reference pixel with depth (see
+:mod:`.definition`), NaN elsewhere.
+
+Baselines of the benchmark: :func:`dis_depth_flow` (DIS optical flow + depth back-projection)
+and per-segment ICP (``MSFConfig(photometric_weight=0, smoothness=0)``).
+Pure NumPy/SciPy/OpenCV: no ROS, no files.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import spsolve
+
+
+# ------------------------------------------------------------------ input helpers
+
+def depth_metres(depth: np.ndarray) -> np.ndarray:
+    """A depth image as float32 metres with NaN where unknown: float input is metres (NaN,
+    inf, 0 or negative: unknown), integer input (16UC1) is millimetres (0: unknown)."""
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise ValueError(f'depth: expected an H x W image, got shape {d.shape}')
+    if np.issubdtype(d.dtype, np.integer):
+        out = d.astype(np.float32) * np.float32(1e-3)
+    elif np.issubdtype(d.dtype, np.floating):
+        out = d.astype(np.float32, copy=True)
+    else:
+        raise ValueError(f'depth: dtype {d.dtype} is neither metres (float) nor millimetres (int)')
+    out[~(np.isfinite(out) & (out > 0))] = np.nan
+    return out
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """uint8/float rgb or gray image -> float32 gray (0..255)."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a[..., :3].astype(np.float32), cv2.COLOR_RGB2GRAY)
+    elif a.ndim != 2:
+        raise ValueError(f'image: expected H x W or H x W x 3, got shape {a.shape}')
+    return a.astype(np.float32)
+
+
+def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W, 3) camera-frame points of a depth image (NaN where the depth is)."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    z = depth.astype(np.float32)
+    return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+
+
+def _check_K(K: np.ndarray) -> np.ndarray:
+    K = np.asarray(K, np.float64)
+    if K.shape != (3, 3) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f'K: expected a 3x3 intrinsic matrix with fx, fy > 0, got {K.tolist()}')
+    return K
+
+
+# ------------------------------------------------------------------ SLIC over-segmentation
+
+def slic(gray: np.ndarray, depth: np.ndarray, n_segments: int = 300, compactness: float = 10.0,
+         depth_scale: float = 0.02, iterations: int = 5) -> np.ndarray:
+    """Vectorised SLIC of the pixels with depth: k-means on (intensity, x, y, depth) with every
+    pixel compared to the 3x3 grid cells around it.  ``compactness``: intensity units per grid
+    step; ``depth_scale``: metres worth one grid step.  Returns labels (H, W) int32, 0..S-1,
+    -1 where there is no depth; every segment is 4-connected."""
+    if n_segments < 1:
+        raise ValueError(f'n_segments={n_segments}: expected >= 1')
+    g = np.asarray(gray, np.float32)
+    z = np.asarray(depth, np.float32)
+    if g.shape != z.shape:
+        raise ValueError(f'gray: shape {g.shape} differs from depth {z.shape}')
+    H, W = g.shape
+    ok = np.isfinite(z)
+    labels = np.full((H, W), -1, np.int32)
+    n_ok = int(ok.sum())
+    if n_ok == 0:
+        return labels
+    step = max(2.0, np.sqrt(n_ok / n_segments))
+    ys, xs = np.nonzero(ok)
+    feat = np.stack([g[ys, xs], xs.astype(np.float32), ys.astype(np.float32), z[ys, xs]], 1)
+    gh, gw = int(np.ceil(H / step)), int(np.ceil(W / step))
+    cy, cx = np.minimum((ys / step).astype(int), gh - 1), np.minimum((xs / step).astype(int), gw - 1)
+    cell = cy * gw + cx
+    n_cells = gh * gw
+    # seeds: the mean of each cell's pixels
+    cnt = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    centres = np.stack([np.bincount(cell, feat[:, k], n_cells) for k in range(4)], 1) \
+        / np.maximum(cnt, 1)[:, None]
+    alive = cnt > 0
+    wI = 1.0 / compactness ** 2
+    wxy = 1.0 / step ** 2
+    wz = 1.0 / depth_scale ** 2
+    offs = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    assign = cell
+    for _ in range(iterations):
+        best = np.full(n_ok, np.inf, np.float32)
+        for dy, dx in offs:
+            ny, nx = cy + dy, cx + dx
+            inside = (ny >= 0) & (ny < gh) & (nx >= 0) & (nx < gw)
+            c = np.where(inside, ny * gw + nx, 0)
+            ce = centres[c]
+            d = (wI * (feat[:, 0] - ce[:, 0]) ** 2
+                 + wxy * ((feat[:, 1] - ce[:, 1]) ** 2 + (feat[:, 2] - ce[:, 2]) ** 2)
+                 + wz * (feat[:, 3] - ce[:, 3]) ** 2)
+            d = np.where(inside & alive[c], d, np.inf).astype(np.float32)
+            better = d < best
+            best = np.where(better, d, best)
+            assign = np.where(better, c, assign)
+        cnt = np.bincount(assign, minlength=n_cells).astype(np.float64)
+        alive = cnt > 0
+        new = np.stack([np.bincount(assign, feat[:, k], n_cells) for k in range(4)], 1) \
+            / np.maximum(cnt, 1)[:, None]
+        centres = np.where(alive[:, None], new, centres)
+    labels[ys, xs] = assign
+    return _connected(labels, min_size=max(4, int(step * step / 4)))
+
+
+def _connected(labels: np.ndarray, min_size: int) -> np.ndarray:
+    """Split every label into its 4-connected pieces, merge pieces under ``min_size`` pixels
+    into the nearest kept piece, relabel 0..S-1 (-1 stays -1)."""
+    H, W = labels.shape
+    idx = np.arange(H * W).reshape(H, W)
+    lab = labels
+    e = []
+    for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1, :], lab[1:, :])):
+        same = (a == b) & (a >= 0)
+        e.append(same)
+    r = np.concatenate([idx[:, :-1][e[0]], idx[:-1, :][e[1]]])
+    c = np.concatenate([idx[:, 1:][e[0]], idx[1:, :][e[1]]])
+    graph = sp.coo_matrix((np.ones(r.size, np.int8), (r, c)), shape=(H * W, H * W))
+    _, comp = connected_components(graph, directed=False)
+    comp = comp.reshape(H, W)
+    valid = lab >= 0
+    sizes = np.bincount(comp[valid], minlength=H * W)
+    keep = valid & (sizes[comp] >= min_size)
+    if not keep.any():
+        keep = valid
+    if (valid & ~keep).any():
+        from scipy.ndimage import distance_transform_edt
+        _, (iy, ix) = distance_transform_edt(~keep, return_indices=True)
+        comp = np.where(keep, comp, comp[iy, ix])
+    out = np.full((H, W), -1, np.int32)
+    _, dense = np.unique(comp[valid], return_inverse=True)
+    out[valid] = dense.astype(np.int32)
+    return out
+
+
+def segment_graph(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbouring segment pairs (E, 2) (a < b) and their shared boundary length (E,)."""
+    pairs = []
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1, :], labels[1:, :])):
+        m = (a != b) & (a >= 0) & (b >= 0)
+        pairs.append(np.stack([np.minimum(a[m], b[m]), np.maximum(a[m], b[m])], 1))
+    p = np.concatenate(pairs)
+    if p.size == 0:
+        return np.empty((0, 2), np.int64), np.empty(0)
+    uniq, counts = np.unique(p, axis=0, return_counts=True)
+    return uniq.astype(np.int64), counts.astype(np.float64)
+
+
+# ------------------------------------------------------------------ SE(3) helpers
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues, vectorised: (S, 3) rotation vectors -> (S, 3, 3)."""
+    th = np.linalg.norm(w, axis=1)
+    k = w / np.maximum(th, 1e-12)[:, None]
+    Kx = np.zeros((w.shape[0], 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
+
+
+def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, C) float64 of img (H, W, C) float32 at (u, v) (cv2.remap, with the
+    points laid out in rows of 4096: remap's sides are limited to 32767)."""
+    n, row = u.size, 4096
+    pad = (-n) % row
+    mu = np.concatenate([u, np.zeros(pad)]).astype(np.float32).reshape(-1, row)
+    mv = np.concatenate([v, np.zeros(pad)]).astype(np.float32).reshape(-1, row)
+    out = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, img.shape[2])[:n].astype(np.float64)
+
+
+def _block_pcg(Hm: sp.csr_matrix, b: np.ndarray, blocks: np.ndarray, iterations: int = 40,
+               tol: float = 1e-6) -> np.ndarray:
+    """Solve Hm x = b (symmetric positive definite) by conjugate gradients preconditioned
+    with the inverses of the 6x6 diagonal blocks (a Gauss-Newton step needs no exact solve)."""
+    Minv = np.linalg.inv(blocks)
+    S = blocks.shape[0]
+
+    def prec(r: np.ndarray) -> np.ndarray:
+        return np.einsum('sij,sj->si', Minv, r.reshape(S, 6)).ravel()
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = prec(r)
+    p = z.copy()
+    rz = r @ z
+    stop = tol * max(np.sqrt(b @ b), 1e-300)
+    for _ in range(iterations):
+        Ap = Hm @ p
+        alpha = rz / max(p @ Ap, 1e-300)
+        x += alpha * p
+        r -= alpha * Ap
+        if np.sqrt(r @ r) < stop:
+            break
+        z = prec(r)
+        rz_new = r @ z
+        p = z + (rz_new / max(rz, 1e-300)) * p
+        rz = rz_new
+    return x
+
+
+def _cross_jac(Y: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """J (N, 6) of g . (v + w x Y) with respect to (v, w): [g, Y x g]."""
+    return np.concatenate([g, np.cross(Y, g)], axis=1)
+
+
+# ------------------------------------------------------------------ the estimator
+
+@dataclass(frozen=True)
+class MSFConfig:
+    segments: int = 300              # SLIC segments of the reference frame
+    compactness: float = 10.0        # SLIC: intensity units per grid step
+    slic_depth_scale: float = 0.02   # SLIC: metres of depth worth one grid step
+    solve_width: int = 160           # finest pyramid level solved: about this wide (px)
+    levels: int = 3                  # pyramid levels solved, coarse to fine
+    global_levels: int = 0           # the coarsest ones solve one motion increment for all
+    iterations: tuple[int, ...] = (4, 3, 3)   # Gauss-Newton steps per level, coarse to fine
+    photometric_weight: float = 1.0
+    photometric_sigma: float = 4.0   # intensity units
+    depth_weight: float = 1.0
+    depth_sigma: float = 0.005       # metres
+    max_depth_residual: float = 0.1  # m: projective ICP pairs further apart are outliers
+    smoothness: float = 0.2          # nu: neighbour rigidity (per pixel of a segment)
+    smooth_depth_edge: float = 0.05  # m: neighbours further apart in depth couple less
+    huber: float = 1.0               # robust threshold on the normalised residuals
+    damping: float = 1e-3            # Levenberg-Marquardt damping (relative to diag)
+    reselect_fraction: float = 0.5   # new reference when less of it stays consistent
+
+    def check(self) -> None:
+        for name in ('segments', 'solve_width', 'levels'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name}={getattr(self, name)}: expected >= 1')
+        for name in ('compactness', 'slic_depth_scale', 'photometric_sigma', 'depth_sigma',
+                     'max_depth_residual', 'smooth_depth_edge', 'huber'):
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
+        for name in ('photometric_weight', 'depth_weight', 'smoothness', 'damping'):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f'{name}={getattr(self, name)}: expected >= 0')
+        if self.photometric_weight == 0 and self.depth_weight == 0:
+            raise ValueError('photometric_weight, depth_weight: at least one must be > 0')
+        if len(self.iterations) < 1 or min(self.iterations) < 0:
+            raise ValueError(f'iterations={self.iterations}: expected non-negative counts')
+        if not 0 <= self.reselect_fraction < 1:
+            raise ValueError(f'reselect_fraction={self.reselect_fraction}: expected [0, 1)')
+
+
+ICP_CONFIG = MSFConfig(photometric_weight=0.0, smoothness=0.0)   # the per-segment ICP baseline
+
+
+@dataclass
+class _Level:
+    """One pyramid level of a frame."""
+    K: np.ndarray
+    img: np.ndarray      # (h, w, 3) float32: intensity, d/dx, d/dy
+    V: np.ndarray        # (h, w, 3) float32 points (NaN: no depth)
+    N: np.ndarray        # (h, w, 3) float32 normals (NaN: unknown)
+
+
+def _pyramid(gray: np.ndarray, depth: np.ndarray, K: np.ndarray, first: int, n: int
+             ) -> list[_Level]:
+    """Levels first .. first+n-1 (level l: every 2^l-th pixel after blurring, K / 2^l)."""
+    out = []
+    g, z = gray, depth
+    for lev in range(first + n):
+        if lev >= first:
+            Kl = K.copy()
+            Kl[:2] /= 2 ** lev
+            gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+            gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+            V = back_project(z, Kl)
+            out.append(_Level(Kl, np.dstack([g, gx, gy]), V, _normals(V)))
+        g = cv2.GaussianBlur(g, (5, 5), 1.0)[::2, ::2].copy()
+        z = z[::2, ::2].copy()
+    return out[::-1]   # coarse first
+
+
+def _normals(V: np.ndarray) -> np.ndarray:
+    dx = np.full_like(V, np.nan)
+    dy = np.full_like(V, np.nan)
+    dx[:, 1:-1] = V[:, 2:] - V[:, :-2]
+    dy[1:-1] = V[2:] - V[:-2]
+    n = np.cross(dx, dy)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
+    # depth edges: no normal where the neighbours jump by more than 10% of the depth
+    jump = np.maximum(np.abs(dx[..., 2]), np.abs(dy[..., 2])) > 0.1 * V[..., 2]
+    n[jump] = np.nan
+    return n
+
+
+@dataclass
+class _Ref:
+    """A reference frame: its segments and, per solved level, the pixels used."""
+    labels: np.ndarray                    # (H, W) full resolution, -1: no depth
+    X: np.ndarray                         # (H, W, 3) full-resolution points
+    S: int
+    pairs: np.ndarray                     # (E, 2)
+    pair_w: np.ndarray                    # (E,)
+    pair_pts: np.ndarray                  # (E, 3, 3): 3 points per pair (reference frame)
+    level_pix: list = field(default_factory=list)   # per level: (X (N,3), I (N,), seg (N,), A)
+    index: int = 0
+
+
+@dataclass
+class MSFFrame:
+    flow: np.ndarray          # (H, W, 3) float32 camera-frame flow X_c - X_ref0 (NaN: unknown)
+    valid: np.ndarray         # (H, W) bool
+    consistent: float         # fraction of the current reference's pixels consistent in c
+    reselected: bool          # this frame became the new reference
+    seconds: float
+
+
+class MSF:
+    """Multi-frame scene flow from the first frame given to :meth:`step` to every later one."""
+
+    def __init__(self, K: np.ndarray, config: MSFConfig | None = None) -> None:
+        self.K = _check_K(K)
+        self.cfg = config or MSFConfig()
+        self.cfg.check()
+        self._ref: _Ref | None = None
+        self._R = self._t = None
+        # chaining through re-selected references: per first-frame pixel, its current point in
+        # the active reference's camera frame at the time that reference was taken
+        self._X0: np.ndarray | None = None        # (H, W, 3) first-frame points
+        self._Y_in_ref: np.ndarray | None = None  # (H, W, 3)
+        self._seg_of0: np.ndarray | None = None   # (H, W) active-ref segment of each pixel
+        self.reselections: list[int] = []
+        self._frame = -1
+
+    # ---------------------------------------------------------------- public
+    def step(self, image: np.ndarray, depth: np.ndarray) -> MSFFrame | None:
+        """Add a frame; returns None for the first one (the reference), else its flow."""
+        t0 = time.perf_counter()
+        gray, z = to_gray(image), depth_metres(depth)
+        if gray.shape != z.shape:
+            raise ValueError(f'image: size {gray.shape} differs from depth {z.shape}')
+        self._frame += 1
+        if self._ref is None:
+            if self._X0 is not None and gray.shape != self._X0.shape[:2]:
+                raise ValueError('image: size changed')
+            self._set_reference(gray, z)
+            self._X0 = self._ref.X.copy()
+            self._Y_in_ref = self._X0.copy()
+            self._seg_of0 = self._ref.labels.copy()
+            return None
+        if gray.shape != self._ref.labels.shape:
+            raise ValueError(f'image: size {gray.shape} differs from the reference '
+                             f'{self._ref.labels.shape}')
+        levels = _pyramid(gray, z, self.K, self._first_level(gray.shape[1]), self.cfg.levels)
+        consistent = self._solve(levels)
+        # first-frame pixels -> this frame, through the active reference's segment motions
+        seg = self._seg_of0
+        ok = seg >= 0
+        Y = np.full(self._X0.shape, np.nan, np.float32)
+        s = seg[ok]
+        Y[ok] = np.einsum('nij,nj->ni', self._R[s], self._Y_in_ref[ok]) + self._t[s]
+        flow = Y - self._X0
+        valid = np.isfinite(flow).all(-1)
+        reselect = consistent < self.cfg.reselect_fraction
+        if reselect:
+            self._reselect(gray, z, Y)
+        return MSFFrame(flow=flow, valid=valid, consistent=consistent, reselected=reselect,
+                        seconds=time.perf_counter() - t0)
+
+    # ---------------------------------------------------------------- internals
+    def _first_level(self, width: int) -> int:
+        return max(0, int(round(np.log2(max(width / self.cfg.solve_width, 1.0)))))
+
+    def _set_reference(self, gray: np.ndarray, z: np.ndarray) -> None:
+        c = self.cfg
+        labels = slic(gray, z, c.segments, c.compactness, c.slic_depth_scale)
+        X = back_project(z, self.K)
+        S = int(labels.max()) + 1
+        pairs, blen = segment_graph(labels)
+        ok = labels >= 0
+        lab = labels[ok]
+        cnt = np.maximum(np.bincount(lab, minlength=S), 1).astype(np.float64)
+        cen = np.stack([np.bincount(lab, X[ok][:, k], S) for k in range(3)], 1) / cnt[:, None]
+        # three points per pair: both centroids and one off the line joining them
+        a, b = cen[pairs[:, 0]], cen[pairs[:, 1]]
+        mid = 0.5 * (a + b)
+        d = b - a
+        off = np.cross(d, [0.0, 0.0, 1.0])
+        off += np.where(np.linalg.norm(off, axis=1, keepdims=True) < 1e-9, [[1.0, 0, 0]], 0)
+        off *= (0.5 * np.linalg.norm(d, axis=1) / (np.linalg.norm(off, axis=1) + 1e-12))[:, None]
+        pts = np.stack([a, b, mid + off], 1) if len(pairs) else np.empty((0, 3, 3))
+        dz = np.abs(a[:, 2] - b[:, 2])
+        w = 1.0 / (1.0 + (dz / c.smooth_depth_edge) ** 2)
+        ref = _Ref(labels, X, S, pairs, w, pts, index=self._frame)
+        lev_first = self._first_level(gray.shape[1])
+        for L in _pyramid(gray, z, self.K, lev_first, c.levels):
+            lev = int(round(np.log2(self.K[0, 0] / L.K[0, 0])))
+            sl = labels[::2 ** lev, ::2 ** lev]
+            m = (sl >= 0) & np.isfinite(L.V[..., 2])
+            segp = sl[m].astype(np.int64)
+            A = sp.csr_matrix((np.ones(segp.size), (segp, np.arange(segp.size))),
+                              shape=(S, segp.size))
+            ref.level_pix.append((L.V[m].astype(np.float64), L.img[..., 0][m].astype(np.float64),
+                                  segp, A))
+        self._ref = ref
+        self._R = np.repeat(np.eye(3)[None], S, axis=0)
+        self._t = np.zeros((S, 3))
+
+    def _solve(self, levels: list[_Level]) -> float:
+        c = self.cfg
+        its = list(c.iterations) + [c.iterations[-1]] * max(0, len(levels) - len(c.iterations))
+        consistent = 0.0
+        for li, L in enumerate(levels):
+            X, I0, seg, A = self._ref.level_pix[li]
+            tau = c.max_depth_residual * (2.0 ** (len(levels) - 1 - li)) ** 0.5
+            common = li < c.global_levels
+            for _ in range(its[li]):
+                consistent = self._gn_step(L, X, I0, seg, A, tau, common=common)
+            if its[li] == 0:
+                consistent = self._gn_step(L, X, I0, seg, A, tau, update=False)
+        return consistent
+
+    def _gn_step(self, L: _Level, X: np.ndarray, I0: np.ndarray, seg: np.ndarray,
+                 A: sp.csr_matrix, tau: float, update: bool = True, common: bool = False
+                 ) -> float:
+        """One damped Gauss-Newton step of every segment's pose (``common``: one increment
+        shared by all, left-multiplied); returns the fraction of depth-consistent pixels."""
+        c = self.cfg
+        S = self._ref.S
+        h, w = L.V.shape[:2]
+        fx, fy, cx, cy = L.K[0, 0], L.K[1, 1], L.K[0, 2], L.K[1, 2]
+        Y = np.einsum('nij,nj->ni', self._R[seg], X) + self._t[seg]
+        z = np.maximum(Y[:, 2], 1e-6)
+        u, v = fx * Y[:, 0] / z + cx, fy * Y[:, 1] / z + cy
+        inside = (Y[:, 2] > 1e-6) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        Hs = np.zeros((S, 36))
+        bs = np.zeros((S, 6))
+        # projective point-to-plane ICP
+        iu = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
+        iv = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
+        Q = L.V[iv, iu].astype(np.float64)
+        n = L.N[iv, iu].astype(np.float64)
+        dist = np.linalg.norm(Y - Q, axis=1)
+        okD = inside & np.isfinite(dist) & np.isfinite(n).all(1) & (dist < tau)
+        n_in = max(int(inside.sum()), 1)
+        consistent = float(okD.sum()) / max(X.shape[0], 1) if X.shape[0] else 0.0
+        if not update:
+            return consistent
+        if c.depth_weight > 0 and okD.any():
+            Yd, nd = Y[okD], n[okD]
+            r = np.einsum('ij,ij->i', nd, Yd - Q[okD]) / c.depth_sigma
+            J = _cross_jac(Yd, nd) / c.depth_sigma
+            wt = c.depth_weight * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
+            Ad = A[:, np.nonzero(okD)[0]]
+            Hs += Ad @ (wt[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36))
+            bs += Ad @ (wt[:, None] * J * r[:, None])
+        if c.photometric_weight > 0 and inside.any():
+            idx = np.nonzero(inside)[0]
+            smp = _bilinear(L.img, u[idx], v[idx])
+            r = (smp[:, 0] - I0[idx]) / c.photometric_sigma
+            Yi, zi = Y[idx], z[idx]
+            gx, gy = smp[:, 1] * fx / zi, smp[:, 2] * fy / zi
+            g = np.stack([gx, gy, -(gx * Yi[:, 0] + gy * Yi[:, 1]) / zi], 1) / c.photometric_sigma
+            J = _cross_jac(Yi, g)
+            wt = c.photometric_weight * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
+            Ai = A[:, idx]
+            Hs += Ai @ (wt[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36))
+            bs += Ai @ (wt[:, None] * J * r[:, None])
+        del n_in
+        Hs = Hs.reshape(S, 6, 6)
+        if common:
+            Hg, bg = Hs.sum(0), bs.sum(0)
+            dg = np.diag(Hg)
+            step = -np.linalg.solve(Hg + c.damping * np.diag(dg) + (1e-9 + 1e-6 * dg.max())
+                                    * np.eye(6), bg)
+            Rd = _exp_so3(step[None, 3:])[0]
+            self._R = Rd @ self._R
+            self._t = self._t @ Rd.T + step[:3]
+            return consistent
+        rows, cols, vals = [], [], []
+        base = np.arange(S)[:, None, None] * 6
+        ii = base + np.arange(6)[None, :, None] + 0 * np.arange(6)[None, None, :]
+        jj = base + np.arange(6)[None, None, :] + 0 * np.arange(6)[None, :, None]
+        diag = np.einsum('sii->si', Hs)
+        # damping: relative to the diagonal, plus a floor for segments with little data
+        floor = 1e-6 + 1e-3 * np.median(diag[diag > 0]) if (diag > 0).any() else 1.0
+        Hd = Hs + (c.damping * diag[:, :, None] * np.eye(6) + floor * np.eye(6))
+        rows.append(ii.ravel()), cols.append(jj.ravel()), vals.append(Hd.ravel())
+        b = bs.copy()
+        P = self._ref.pairs
+        if c.smoothness > 0 and len(P):
+            npix = np.bincount(seg, minlength=S).astype(np.float64)
+            pa, pb = P[:, 0], P[:, 1]
+            wp = c.smoothness * self._ref.pair_w * np.sqrt(npix[pa] * npix[pb]) / 3.0
+            pts = self._ref.pair_pts                      # (E, 3, 3)
+            Ya = np.einsum('eij,ekj->eki', self._R[pa], pts) + self._t[pa][:, None]
+            Yb = np.einsum('eij,ekj->eki', self._R[pb], pts) + self._t[pb][:, None]
+            r = (Ya - Yb) / c.depth_sigma                 # (E, 3, 3)
+
+            def jac(Yp: np.ndarray) -> np.ndarray:        # (E, 3pts, 3res, 6)
+                E = Yp.shape[0]
+                J = np.zeros((E, 3, 3, 6))
+                J[..., :3] = np.eye(3)
+                x, y, zz = Yp[..., 0], Yp[..., 1], Yp[..., 2]
+                # d(w x Y)/dw = -[Y]x
+                J[..., 0, 4], J[..., 0, 5] = zz, -y
+                J[..., 1, 3], J[..., 1, 5] = -zz, x
+                J[..., 2, 3], J[..., 2, 4] = y, -x
+                return J.reshape(E, 9, 6) / c.depth_sigma
+            Ja, Jb = jac(Ya), -jac(Yb)
+            rr = r.reshape(-1, 9)
+            wv = wp[:, None, None]
+            Haa = wv * np.einsum('eki,ekj->eij', Ja, Ja)
+            Hbb = wv * np.einsum('eki,ekj->eij', Jb, Jb)
+            Hab = wv * np.einsum('eki,ekj->eij', Ja, Jb)
+            ga = wp[:, None] * np.einsum('eki,ek->ei', Ja, rr)
+            gb = wp[:, None] * np.einsum('eki,ek->ei', Jb, rr)
+            np.add.at(b, pa, ga)
+            np.add.at(b, pb, gb)
+            o6 = np.arange(6)
+            for A_, B_, M in ((pa, pa, Haa), (pb, pb, Hbb), (pa, pb, Hab),
+                              (pb, pa, np.transpose(Hab, (0, 2, 1)))):
+                rows.append((A_[:, None, None] * 6 + o6[None, :, None]
+                             + 0 * o6[None, None, :]).ravel())
+                cols.append((B_[:, None, None] * 6 + o6[None, None, :]
+                             + 0 * o6[None, :, None]).ravel())
+                vals.append(M.ravel())
+        Hm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(6 * S, 6 * S))
+        delta = -spsolve(Hm.tocsc(), b.ravel()).reshape(S, 6)
+        delta[~np.isfinite(delta).all(1)] = 0.0
+        Rd = _exp_so3(delta[:, 3:])
+        self._R = Rd @ self._R
+        self._t = np.einsum('sij,sj->si', Rd, self._t) + delta[:, :3]
+        return consistent
+
+    def _reselect(self, gray: np.ndarray, z: np.ndarray, Y: np.ndarray) -> None:
+        """Frame c becomes the reference: every first-frame pixel is handed to the new segment
+        it lands on where the depth agrees, else to the new segment most of its old segment's
+        pixels landed on (or it keeps its last position if none)."""
+        old_seg = self._seg_of0
+        self._set_reference(gray, z)
+        self.reselections.append(self._frame)
+        new_lab = self._ref.labels
+        H, W = new_lab.shape
+        ok = np.isfinite(Y).all(-1) & (old_seg >= 0)
+        zz = np.where(ok, Y[..., 2], 1.0)
+        u = np.rint(self.K[0, 0] * Y[..., 0] / zz + self.K[0, 2])
+        v = np.rint(self.K[1, 1] * Y[..., 1] / zz + self.K[1, 2])
+        inside = ok & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        iu = np.clip(np.nan_to_num(u), 0, W - 1).astype(int)
+        iv = np.clip(np.nan_to_num(v), 0, H - 1).astype(int)
+        lab_at = np.where(inside, new_lab[iv, iu], -1)
+        zt = np.where(inside, z[iv, iu], np.nan)
+        hit = (lab_at >= 0) & (np.abs(zt - Y[..., 2]) < self.cfg.max_depth_residual)
+        # majority new segment per old segment
+        S_old = int(old_seg.max()) + 1
+        votes = sp.coo_matrix((np.ones(int(hit.sum())), (old_seg[hit], lab_at[hit])),
+                              shape=(S_old, self._ref.S)).tocsr()
+        has = np.asarray(votes.sum(1)).ravel() > 0
+        major = np.where(has, np.asarray(votes.argmax(1)).ravel(), -1)
+        seg = np.where(hit, lab_at, np.where(ok, major[np.maximum(old_seg, 0)], -1))
+        self._seg_of0 = seg.astype(np.int32)
+        self._Y_in_ref = np.where(ok[..., None], Y, np.nan).astype(np.float64)
+        self._R = np.repeat(np.eye(3)[None], self._ref.S, axis=0)
+        self._t = np.zeros((self._ref.S, 3))
+
+
+def msf_sequence(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: np.ndarray,
+                 config: MSFConfig | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Flow (F-1, H, W, 3) float32 from the first frame to each later one (first frame's
+    camera frame; NaN where unknown), valid (F-1, H, W) and stats (seconds per frame,
+    re-selected references)."""
+    if len(images) != len(depths) or len(images) < 2:
+        raise ValueError(f'images, depths: expected the same number (>= 2) of frames, got '
+                         f'{len(images)} and {len(depths)}')
+    est = MSF(K, config)
+    flows, valids, secs = [], [], []
+    t0 = time.perf_counter()
+    est.step(images[0], depths[0])
+    ref_s = time.perf_counter() - t0
+    for img, d in zip(images[1:], depths[1:]):
+        fr = est.step(img, d)
+        flows.append(fr.flow)
+        valids.append(fr.valid)
+        secs.append(fr.seconds)
+    return (np.stack(flows), np.stack(valids),
+            {'seconds_per_frame': float(np.mean(secs)), 'reference_seconds': ref_s,
+             'reselections': list(est.reselections)})
+
+
+# ------------------------------------------------------------------ baseline
+
+def dis_depth_flow(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: np.ndarray,
+                   preset: str = 'medium') -> tuple[np.ndarray, np.ndarray, dict]:
+    """Baseline: DIS optical flow first frame -> each frame (seeded by the previous one), the
+    matched pixel back-projected with that frame's depth.  Same outputs as msf_sequence."""
+    presets = {'ultrafast': cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+               'fast': cv2.DISOPTICAL_FLOW_PRESET_FAST,
+               'medium': cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+    if preset not in presets:
+        raise ValueError(f'preset={preset!r}: expected one of {list(presets)}')
+    K = _check_K(K)
+    dis = cv2.DISOpticalFlow_create(presets[preset])
+    dis.setUseSpatialPropagation(True)
+    g0 = np.clip(to_gray(images[0]), 0, 255).astype(np.uint8)
+    z0 = depth_metres(depths[0])
+    X0 = back_project(z0, K)
+    H, W = g0.shape
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    flows, valids, secs = [], [], []
+    prev = None
+    for img, d in zip(images[1:], depths[1:]):
+        t0 = time.perf_counter()
+        g = np.clip(to_gray(img), 0, 255).astype(np.uint8)
+        of = dis.calc(g0, g, None if prev is None else prev.copy())   # seeded by the last
+        prev = of
+        u, v = gx + of[..., 0], gy + of[..., 1]
+        inside = (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        iu = np.clip(np.rint(u), 0, W - 1).astype(int)
+        iv = np.clip(np.rint(v), 0, H - 1).astype(int)
+        z = depth_metres(d)[iv, iu]
+        Y = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+        fl = np.where(inside[..., None], Y, np.nan) - X0
+        flows.append(fl.astype(np.float32))
+        valids.append(np.isfinite(fl).all(-1))
+        secs.append(time.perf_counter() - t0)
+    return np.stack(flows), np.stack(valids), {'seconds_per_frame': float(np.mean(secs))}
+
+
+def with_config(config: MSFConfig | None, **changes: object) -> MSFConfig:
+    return replace(config or MSFConfig(), **changes)

@@ -1,0 +1,156 @@
+"""RGB-D scene flow: MSF (piecewise rigid), the DIS + depth baseline, the one flow definition,
+the dense synthetic ground truth, the ``scene-flow`` CLI verb and the msf processor."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from nrsfm_ros.core.sceneflow import (MSF, MSFConfig, camera_to_object, dis_depth_flow, epe,
+                                      msf_sequence, relative_motion)
+from nrsfm_ros.core.sceneflow.msf import back_project, depth_metres, segment_graph, slic
+from nrsfm_ros.io.synth import SynthConfig, generate
+from nrsfm_ros.io.synth_flow import dense_scene_flow
+
+K = np.array([[200.0, 0, 79.5], [0, 200.0, 59.5], [0, 0, 1]])
+H, W = 120, 160
+
+
+def render_plane(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A textured tilted plane seen by a camera with pose T (world -> camera): rgb8, depth m."""
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    R, t = T[:3, :3], T[:3, 3]
+    n, d = np.array([-0.1, 0.3, 1.0]), 4.0
+    rw, c = rays @ R, -t @ R
+    s = (d - c @ n) / (rw @ n)
+    Xw = s[..., None] * rw + c
+    tex = (np.sin(Xw[..., 0] * 40) + np.cos(Xw[..., 1] * 33)
+           + np.sin((Xw[..., 0] + Xw[..., 1]) * 17)) * 40 + 128
+    img = np.repeat(np.clip(tex, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+    return img, (s * rays[..., 2]).astype(np.float32)
+
+
+def pose(rot_deg: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.radians(np.array(rot_deg, float)))[0]
+    T[:3, 3] = t
+    return T
+
+
+def test_slic_segments_are_connected_and_cover_the_depth():
+    img, z = render_plane(np.eye(4))
+    z[:, :20] = np.nan
+    lab = slic(img[..., 0].astype(np.float32), z, n_segments=60)
+    assert (lab[:, :20] == -1).all() and (lab[:, 20:] >= 0).all()
+    assert 40 <= lab.max() + 1 <= 90
+    pairs, length = segment_graph(lab)
+    assert len(pairs) > lab.max() and (pairs[:, 0] < pairs[:, 1]).all() and (length > 0).all()
+
+
+def test_known_rigid_motion_of_a_textured_plane_is_recovered():
+    T1 = pose((0.8, -0.5, 1.0), (0.02, 0.01, 0.03))
+    (i0, z0), (i1, z1) = render_plane(np.eye(4)), render_plane(T1)
+    est = MSF(K, MSFConfig(segments=40))
+    assert est.step(i0, z0) is None
+    fr = est.step(i1, z1)
+    X0 = back_project(z0, K)
+    gt = X0 @ T1[:3, :3].T + T1[:3, 3] - X0
+    err = np.linalg.norm(fr.flow - gt, axis=-1)[fr.valid]
+    assert fr.valid.mean() > 0.99
+    assert np.mean(err) < 1e-3, np.mean(err)          # < 1 mm of a ~37 mm motion
+    assert np.linalg.norm(gt, axis=-1).mean() > 0.03
+
+
+def test_flow_definition_and_dense_ground_truth_agree():
+    seq = generate(SynthConfig(surface='flag', width=96, height=72, frames=4, stride=1))
+    cam, valid = dense_scene_flow(seq, 'camera')
+    obj, _ = dense_scene_flow(seq, 'object')
+    X0 = back_project(seq.depth[0], seq.K)
+    assert valid.any() and np.isfinite(cam[:, valid]).all()
+    for f in range(3):
+        T = relative_motion(seq.T_camera_world, 0, f + 1)
+        conv = camera_to_object(cam[f][valid], X0[valid], T)
+        assert np.allclose(conv, obj[f][valid], atol=2e-4)
+    cons, _ = dense_scene_flow(seq, 'camera', 'consecutive')
+    assert np.allclose(cons[1][valid], (cam[1] - cam[0])[valid], atol=1e-6)
+    assert epe(obj[0], obj[0], valid) == (0.0, 0.0)
+    with pytest.raises(ValueError, match='frame='):
+        dense_scene_flow(seq, 'world')
+
+
+def noisy_case(frames: int = 5):
+    """A small deforming flag with RGB-D sensor noise (image sigma 2, depth 0.5e-3 z^2 m)."""
+    seq = generate(SynthConfig(surface='flag', width=160, height=120, frames=frames, stride=1,
+                               noise=2.0))
+    rng = np.random.default_rng(0)
+    depth = seq.depth + (5e-4 * seq.depth ** 2 * rng.standard_normal(seq.depth.shape)
+                         ).astype(np.float32)
+    return seq, depth
+
+
+def test_msf_beats_dis_plus_depth_on_a_generated_case():
+    seq, depth = noisy_case()
+    gt, valid = dense_scene_flow(seq, 'camera')
+    dis, _, _ = dis_depth_flow(seq.images, depth, seq.K)
+    msf, ok, st = msf_sequence(seq.images, depth, seq.K)
+    e_dis = np.mean([epe(dis[f], gt[f], valid)[0] for f in range(len(gt))])
+    e_msf = np.mean([epe(msf[f], gt[f], valid)[0] for f in range(len(gt))])
+    assert ok[:, valid].mean() > 0.99
+    assert e_msf < 0.8 * e_dis, (e_msf, e_dis)
+
+
+def test_depth_units():
+    mm = np.array([[0, 1500]], np.uint16)
+    assert np.isnan(depth_metres(mm)[0, 0]) and depth_metres(mm)[0, 1] == pytest.approx(1.5)
+    assert np.isnan(depth_metres(np.array([[-1.0, np.inf]], np.float32))).all()
+    with pytest.raises(ValueError, match='depth'):
+        depth_metres(np.zeros((2, 2, 2)))
+
+
+def test_cli_scene_flow_folder_round_trip(tmp_path):
+    from nrsfm_ros.cli import main
+    T = [np.eye(4), pose((0.3, 0, 0.4), (0.01, 0, 0.01)), pose((0.6, 0, 0.8), (0.02, 0, 0.02))]
+    (tmp_path / 'color').mkdir()
+    (tmp_path / 'depth').mkdir()
+    for i, Ti in enumerate(T):
+        img, z = render_plane(Ti)
+        cv2.imwrite(str(tmp_path / 'color' / f'{i:04d}.png'), img[..., ::-1])
+        cv2.imwrite(str(tmp_path / 'depth' / f'{i:04d}.png'),
+                    np.rint(z * 1000).astype(np.uint16))
+    np.savetxt(tmp_path / 'intrinsics.txt', K)
+    out = tmp_path / 'flow.npz'
+    assert main(['scene-flow', str(tmp_path), '--out', str(out), '--segments', '40']) == 0
+    d = np.load(out)
+    assert d['flow'].shape == (2, H, W, 3) and d['valid'].shape == (2, H, W)
+    z0 = cv2.imread(str(tmp_path / 'depth' / '0000.png'), cv2.IMREAD_UNCHANGED) / 1000.0
+    X0 = back_project(z0.astype(np.float32), K)
+    gt = X0 @ T[2][:3, :3].T + T[2][:3, 3] - X0
+    err = np.linalg.norm(d['flow'][1] - gt, axis=-1)[d['valid'][1]]
+    assert d['valid'].mean() > 0.99 and err.mean() < 2e-3
+    (tmp_path / 'intrinsics.txt').unlink()
+    assert main(['scene-flow', str(tmp_path), '--out', str(out)]) == 2
+
+
+def test_processor_msf_pairs_image_and_depth_by_stamp():
+    from nrsfm_ros.io import image as img_io
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import SceneFlowParams
+    from nrsfm_ros.processing import SceneFlowProcessor
+    fac = RosbagsFactory()
+    p = SceneFlowProcessor(fac, SceneFlowParams(method='msf', stride=4, segments=40))
+    T = [np.eye(4), pose((0, 0, 0), (0.01, 0, 0)), pose((0, 0, 0), (0.02, 0, 0))]
+    outs = []
+    for i, Ti in enumerate(T):
+        img, z = render_plane(Ti)
+        st = 1_000_000_000 + i * 100_000_000
+        assert p.handle('camera_info', img_io.make_camera_info(K, W, H, fac, st, 'cam')) == []
+        assert p.handle('image', img_io.array_to_image(img, 'rgb8', fac, st, 'cam')) == []
+        depth_mm = np.rint(z * 1000).astype(np.uint16)
+        outs.append(p.handle('depth', img_io.array_to_image(depth_mm, '16UC1', fac, st, 'cam')))
+    assert [o[0] for o in outs[0]] == ['scene_flow/points', 'scene_flow/markers']
+    v = pc2.read_fields(outs[2][0][2], ('vx', 'vy', 'vz'), np.float32)
+    assert v.shape[0] == len(range(0, H, 4)) * len(range(0, W, 4))
+    assert np.allclose(np.median(v, axis=0), [0.1, 0, 0], atol=0.01)   # 1 cm per 0.1 s
+    assert p.handle('points', outs[0][0][2]) == []                       # msf ignores clouds
