@@ -310,9 +310,12 @@ OURS_GLOBAL = {'icp-point-to-plane init global': ('icp-point-to-plane',
 
 
 def symmetric_equivalent(S: np.ndarray, R_found: np.ndarray, R_true: np.ndarray) -> bool:
-    """The found rotation maps the clean shape onto the truly rotated one (mean nearest
-    distance below 1% of the diagonal): a symmetry of the shape, not a wrong pose."""
+    """The found rotation, more than 5 degrees off, maps the clean shape onto the truly rotated
+    one (mean nearest distance below 1% of the diagonal): a symmetry of the shape, not a wrong
+    pose (small errors are never counted as symmetries)."""
     from scipy.spatial import cKDTree
+    if rotation_error_deg(R_found, R_true) <= 5.0:
+        return False
     P = S[np.linspace(0, len(S) - 1, 4000).astype(np.intp)]
     P = P - P.mean(0)
     return float(cKDTree(P @ R_true.T).query(P @ R_found.T)[0].mean()) < 0.01
