@@ -57,6 +57,7 @@ class Stats:
     malformed: int = 0
     failed: int = 0
     dropped: int = 0
+    fallbacks: int = 0      # outputs published by a fallback estimate (reconstructor)
     last_error: str = ''
     errors: dict[str, int] = field(default_factory=dict)   # '<input kind>:<field or type>'
     latencies: deque = field(default_factory=lambda: deque(maxlen=100))
@@ -319,7 +320,8 @@ class ReconstructorProcessor(Processor):
     def _emit(self, shapes: list[StreamShape]) -> list[Output]:
         """One nrsfm/points cloud and one nrsfm/depth image per shape."""
         for index, why in self.stream.fallbacks:      # published, but by a fallback: counted
-            self.stats.count_error('tracks:fallback', f'frame {index}: {why}')
+            self.stats.fallbacks += 1
+            self.stats.last_error = f'frame {index} published by a fallback: {why}'
         self.stream.fallbacks.clear()
         out: list[Output] = []
         K = self._intrinsics()
@@ -653,6 +655,7 @@ def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,
               'received': str(stats.received), 'processed': str(stats.processed),
               'published': str(stats.published), 'dropped': str(stats.dropped),
               'malformed': str(stats.malformed), 'failed': str(stats.failed),
+              'fallbacks': str(stats.fallbacks),
               'errors': ', '.join(f'{k}={n}' for k, n in sorted(stats.errors.items())),
               'last_error': stats.last_error}
     values.update(extra or {})

@@ -7,12 +7,24 @@ import pytest
 
 from nrsfm_ros.cli import main
 from nrsfm_ros.demo import run_live, summarise
+from nrsfm_ros.evaluation import rigid_on_ground_truth
 from nrsfm_ros.io.sequence_bag import write_sequence_bag
 from nrsfm_ros.io.synth import SynthConfig, generate
 
-# seed 1 gives a camera that barely rotates in the first window, where the orthographic depth
-# is unobservable and the current factorisation fails (noted on issue 3); seed 0 rotates.
-CFG = SynthConfig(surface='flag', width=192, height=144, frames=30, fps=10.0, seed=0)
+# 30 deg of camera motion: depth is observable (at 12 deg nothing beats the static oracle, see
+# bench/bench_pipeline.py); the shipped defaults must beat every trivial baseline.
+CFG = SynthConfig(surface='flag', width=192, height=144, frames=30, fps=10.0, seed=0,
+                  camera_motion_deg=30.0)
+
+
+def assert_beats_baselines(s: dict, seq) -> None:
+    """Every frame scored, and the stream below its own static, flat and rigid baselines
+    (measured 0.046 against static 0.072, flat 0.092, rigid on ground-truth tracks 0.081)."""
+    assert s['frames_scored'] == CFG.frames and not s['frames_unscored']
+    rigid = rigid_on_ground_truth(seq)
+    e = s['e3d_B_frame_scaled']
+    assert e < 0.8 * s['e3d_static_oracle'] and e < 0.8 * s['e3d_flat_plane'] and e < rigid, \
+        (e, s['e3d_static_oracle'], s['e3d_flat_plane'], rigid)
 
 
 @pytest.fixture(scope='module')
@@ -30,10 +42,11 @@ def test_offline_process_bag(sample):
     assert code == 0
     report = json.loads((root / 'report.json').read_text())
     assert report['failures'] == []
-    for topic in ('nrsfm/tracks', 'nrsfm/points', 'registration/aligned', 'scene_flow/points'):
+    for topic in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
+                  'scene_flow/points'):
         assert report['outputs'][topic] == CFG.frames
     s = summarise(root / 'offline', seq, root / 'offline_render')
-    assert s['e3d_B_frame_scaled'] < 0.15  # measured 0.08 on the 60-frame sample
+    assert_beats_baselines(s, seq)
 
 
 def test_live_graph(sample):
@@ -43,9 +56,9 @@ def test_live_graph(sample):
                                'reconstructor': {'mean_depth': CFG.distance}})
     assert not live['graph_exit']
     s = summarise(root / 'live', seq, root / 'render')
-    for topic in ('nrsfm/tracks', 'nrsfm/points', 'registration/aligned', 'scene_flow/points',
-                  'registration/transform', 'scene_flow/markers'):
+    for topic in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
+                  'scene_flow/points', 'registration/transform', 'scene_flow/markers'):
         assert s['outputs'].get(topic) == CFG.frames, topic
-    assert s['e3d_B_frame_scaled'] < 0.15
+    assert_beats_baselines(s, seq)
     assert set(s['latency_ms']) == {'tracker', 'reconstructor', 'registrar', 'scene_flow'}
     assert (root / 'render' / 'points_000.ply').exists()

@@ -226,7 +226,7 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
     rng = np.random.default_rng(16)
     t0 = time.perf_counter()
     tracker = TrackerProcessor(FAC, TrackerParams(rank=2, window=4, publish_flow=False))
-    rec = ReconstructorProcessor(FAC, ReconstructorParams(window=4, iterations=2,
+    rec = ReconstructorProcessor(FAC, ReconstructorParams(mode='window', window=4, iterations=2,
                                                           publish_depth=True))
     reg = RegistrarProcessor(FAC, RegistrarParams(max_iterations=5, try_reflection=False))
     flow = SceneFlowProcessor(FAC)

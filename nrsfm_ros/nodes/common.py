@@ -148,6 +148,12 @@ class ProcessorNode(Node):
             item = self.queue.get(0.2)
             if item is not None:
                 self._on_message(*item)
+            else:
+                self.on_idle()
+
+    def on_idle(self) -> None:
+        """Called by the worker thread when no input arrived for 0.2 s (long work done here
+        does not hold up a shutdown: the worker is a daemon thread)."""
 
     def _on_message(self, kind: str, msg: Any) -> None:
         try:
@@ -193,7 +199,7 @@ class ProcessorNode(Node):
     def destroy_node(self) -> None:
         self.queue.close()
         if self._worker.is_alive() and self._worker is not threading.current_thread():
-            self._worker.join(5.0)
+            self._worker.join(1.0)      # a daemon: one still inside a long solve is left
         super().destroy_node()
 
 

@@ -17,14 +17,13 @@ class ReconstructorNode(ProcessorNode):
         self.subscribe('tracks', 'sensor_msgs/msg/PointCloud2', qos)
         self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
         self._last_tracks = time.monotonic()
-        self.create_timer(0.25, self._flush_when_idle)
 
     def _on_message(self, kind: str, msg: object) -> None:
         if kind == 'tracks':
             self._last_tracks = time.monotonic()
         super()._on_message(kind, msg)
 
-    def _flush_when_idle(self) -> None:
+    def on_idle(self) -> None:
         """A stream that stopped before its window (or batch) filled still gets its clouds."""
         idle = self.processor.params.idle_flush_s
         if idle > 0 and time.monotonic() - self._last_tracks >= idle:
