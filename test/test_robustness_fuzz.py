@@ -222,6 +222,9 @@ def feed(proc: Processor, kind: str, msg: Any, tally: dict[str, int]) -> None:
         tally['raised'] += 1
 
 
+MESSAGES = 11_500     # every 10th valid: >= 10,000 malformed
+
+
 def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
     rng = np.random.default_rng(16)
     t0 = time.perf_counter()
@@ -248,7 +251,7 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
                ('cloud', 'registrar', 'reference', lambda f: points_msg(rng, 0)),
                ('cloud', 'scene_flow', 'points', lambda f: points_msg(rng, f))]
     weights = np.array([3, 2, 2, 3, 2, 1, 2], float)
-    for f in range(10_500):
+    for f in range(MESSAGES):
         base_kind, stage, kind, make = targets[int(rng.choice(len(targets),
                                                                p=weights / weights.sum()))]
         if f % 10 == 0:     # keep the state moving with valid input
@@ -265,7 +268,7 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
             mutated[base_kind][name] += 1
         feed(procs[stage], kind, msg, tally[stage])
         sent += 1
-    assert sent >= 9_000
+    assert sent >= 10_000
     assert all(n > 20 for fields in mutated.values() for n in fields.values()), mutated
     for name, p in procs.items():
         s = p.stats
@@ -286,6 +289,6 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
     elapsed = time.perf_counter() - t0
     failed = {k: v for p in procs.values() for k, v in p.stats.errors.items()
               if k.split(':')[1][:1].isupper()}     # contained exceptions, by type
-    print(f'fuzz: {sent} malformed + {10_500 - sent} valid messages in {elapsed:.1f} s; '
+    print(f'fuzz: {sent} malformed + {MESSAGES - sent} valid messages in {elapsed:.1f} s; '
           f'contained exceptions {failed}')
     assert elapsed < 60
