@@ -19,6 +19,7 @@ from .io import pointcloud2 as pc2
 from .io.bag import deserialize, read_messages
 from .io.msgtypes import stamp_ns
 from .io.synth import SynthSequence
+from .params import ReconstructorParams
 from .processing import TOPICS
 
 
@@ -48,7 +49,11 @@ def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray, **params: An
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The streaming reconstructor (``StreamNRSfM``, reconstructor defaults unless given) fed
     the tracks W (2F, P), V (F, P) frame by frame: what it would publish, in image units."""
-    stream = StreamNRSfM(**params)
+    d = ReconstructorParams()
+    kw: dict[str, Any] = dict(mode=d.mode, window=d.window, rank=d.rank,
+                              iterations=d.iterations, method=d.method,
+                              batch_frames=d.batch_frames)
+    stream = StreamNRSfM(**{**kw, **params})
     out = {}
     F = V.shape[0]
     for f in range(F):
