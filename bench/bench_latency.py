@@ -1,0 +1,74 @@
+"""Per-frame processing latency of the tracker and of each reconstructor mode (issue 12 target:
+<= 50 ms per frame after start-up at 320x240 on 2 cores).
+
+    .venv/bin/python bench/bench_latency.py [--size 320x240] [--frames 40] [--json out.json]
+
+A 30 deg flag render is fed frame by frame through the nodes' processors (no DDS): the tracker,
+then the reconstructor in every mode on the tracker's tracks.  'After start-up' excludes the
+frames before the first window is full; `batch` publishes nothing until its batch is full (60
+frames by default), so its per-frame cost is buffering only and its solve is the batch row of
+bench_pipeline.py.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchlib import parser, table  # noqa: E402
+from nrsfm_ros.io import image as img_io  # noqa: E402
+from nrsfm_ros.io.msgtypes import RosbagsFactory  # noqa: E402
+from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
+from nrsfm_ros.params import ReconstructorParams  # noqa: E402
+from nrsfm_ros.processing import ReconstructorProcessor, TrackerProcessor  # noqa: E402
+
+MODES = ('window', 'online', 'batch')
+
+
+def main() -> None:
+    p = parser(__doc__)
+    p.add_argument('--size', default='320x240')
+    p.add_argument('--frames', type=int, default=40)
+    a = p.parse_args()
+    w, h = (int(v) for v in a.size.split('x'))
+    fac = RosbagsFactory()
+    seq = generate(SynthConfig(surface='flag', width=w, height=h, frames=a.frames,
+                               camera_motion_deg=30))
+    tracker = TrackerProcessor(fac)
+    recs = {m: ReconstructorProcessor(fac, ReconstructorParams(mode=m)) for m in MODES}
+    info = img_io.make_camera_info(seq.K, w, h, fac, int(seq.stamps_ns[0]), 'cam')
+    for r in recs.values():
+        r.handle('camera_info', info)
+    ms: dict[str, list[float]] = {'tracker': [], **{m: [] for m in MODES}}
+    for f in range(a.frames):
+        msg = img_io.array_to_image(seq.images[f], 'rgb8', fac, int(seq.stamps_ns[f]), 'cam')
+        t = time.perf_counter()
+        out = tracker.handle('image', msg)
+        ms['tracker'].append(1e3 * (time.perf_counter() - t))
+        tracks = next(o[2] for o in out if o[0] == 'nrsfm/tracks')
+        for m, r in recs.items():
+            t = time.perf_counter()
+            r.handle('tracks', tracks)
+            ms[m].append(1e3 * (time.perf_counter() - t))
+    start = ReconstructorParams().window + 1
+    rows = []
+    for name, v in ms.items():
+        after = np.array(v[1:] if name == 'tracker' else v[start:])
+        rows.append({'stage': name if name == 'tracker' else f'reconstructor {name}',
+                     'median_ms': float(np.median(after)), 'p95_ms': float(np.percentile(after, 95)),
+                     'max_ms': float(max(v))})
+    table(['stage', 'median ms/frame', 'p95', 'max over the stream'],
+          [[r['stage'], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['max_ms']:.0f}"]
+           for r in rows])
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == '__main__':
+    main()
