@@ -61,7 +61,8 @@ def main() -> None:
     for name, v in ms.items():
         after = np.array(v[1:] if name == 'tracker' else v[start:])
         rows.append({'stage': name if name == 'tracker' else f'reconstructor {name}',
-                     'median_ms': float(np.median(after)), 'p95_ms': float(np.percentile(after, 95)),
+                     'median_ms': float(np.median(after)),
+                     'p95_ms': float(np.percentile(after, 95)),
                      'max_ms': float(max(v))})
     table(['stage', 'median ms/frame', 'p95', 'max over the stream'],
           [[r['stage'], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['max_ms']:.0f}"]

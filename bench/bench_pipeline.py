@@ -150,7 +150,8 @@ def main() -> None:
     pipe_cols = modes + (['live'] if a.live else [])
     header = (['surface', 'cam deg', 'amp', 'occl', 'cam range', 'static', 'flat']
               + [f'{m}(GT)' for m in gt_methods] + ['stream(GT)']
-              + [f'{m}' for m in pipe_cols] + ['frames in/out', 'pipe/static', 'stream(GT)/static'])
+              + [f'{m}' for m in pipe_cols]
+              + ['frames in/out', 'pipe/static', 'stream(GT)/static'])
 
     def f4(v: float) -> str:
         return f'{v:.4f}' if np.isfinite(v) else 'nan'

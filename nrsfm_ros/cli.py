@@ -610,7 +610,7 @@ def read_points_file(path: str) -> np.ndarray:
         X = np.load(p)
     elif suffix == '.pcd':
         lines = p.read_text().splitlines()
-        start = next((i for i, l in enumerate(lines) if l.startswith('DATA')), None)
+        start = next((i for i, ln in enumerate(lines) if ln.startswith('DATA')), None)
         if start is None or 'ascii' not in lines[start]:
             raise CliError(f'{p}: only ascii PCD is supported')
         X = np.loadtxt(lines[start + 1:], ndmin=2)[:, :3]

@@ -214,7 +214,8 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
 def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str:
     rows = [('frames in (camera/image_raw)', str(s['frames_in']))]
     for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['nrsfm_depth'], TOPICS['aligned'],
-                  TOPICS['transform'], TOPICS['displacement'], TOPICS['scene_flow'], TOPICS['markers'],
+                  TOPICS['transform'], TOPICS['displacement'], TOPICS['scene_flow'],
+                  TOPICS['markers'],
                   TOPICS['flow']):
         rows.append((f'frames out ({topic})', str(s['outputs'].get(topic, 0))))
     if 'e3d_B_frame_scaled' in s:

@@ -166,7 +166,8 @@ class RegistrarParams(Params):
                                       'cpd-rigid', 'cpd-affine', 'cpd-nonrigid', 'ecpd-rigid',
                                       'ecpd-nonrigid', 'ga', 'bhrga', 'nrga'),
                        'registration method')
-    max_iterations: int = rule(30, _REG['max_iterations'], 'iteration cap (ICP and CPD iterations; '
+    max_iterations: int = rule(30, _REG['max_iterations'],
+                               'iteration cap (ICP and CPD iterations; '
                                'GA dynamics steps, which needs ~300; BH-RGA L-BFGS '
                                'iterations per softening stage)')
     max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')

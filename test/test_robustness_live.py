@@ -145,7 +145,7 @@ def test_malformed_messages_interleaved_with_bag_live(rclpy_context, small_bag):
     sys.path.insert(0, str(HERE))
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from test_robustness_fuzz import (camera_info_mutations, cloud_mutations, image_mutations,
-                                      points_msg, tracks_msg)
+                                      points_msg)
 
     from nrsfm_ros.io.bag import read_messages
     from nrsfm_ros.io.msgtypes import rclpy_class

@@ -160,7 +160,9 @@ class StreamScore:
 
     def summary(self) -> dict[str, float | int | list[int]]:
         ok = np.isfinite(self.e3d)
-        mean = (lambda a: float(np.mean(a[ok])) if ok.any() else float('nan'))
+
+        def mean(a: np.ndarray) -> float:
+            return float(np.mean(a[ok])) if ok.any() else float('nan')
         return {'frames': int(self.e3d.size), 'frames_scored': int(ok.sum()),
                 'unscored': list(self.unscored), 'e3d': mean(self.e3d),
                 'static': mean(self.static), 'flat': mean(self.flat),

@@ -106,7 +106,6 @@ def _scan_mcap(file: Path, wanted: Sequence[str] | None) -> tuple[list[BagMessag
     """Every complete message record of an MCAP file, in file order, reading past a damaged
     summary; returns (messages, '' or the reason the scan stopped early)."""
     import struct
-    from io import BytesIO
 
     from rosbags.rosbag2.storage_mcap import decompress
     data = file.read_bytes()

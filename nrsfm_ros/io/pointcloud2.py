@@ -205,8 +205,8 @@ def check_cloud(msg: Any, required: Sequence[str], optional: Sequence[str] = (),
     A cloud is rejected, never repaired, when its layout does not parse, a ``required`` field is
     missing, a field it uses (``required`` and the ``optional`` ones present) has ``count`` != 1,
     a used numeric field other than ``rgb`` holds +-inf or a magnitude above ``limit``, or
-    ``track_id`` is not an integer field of at most 32 bits or repeats a value.  NaN is allowed: it is the PointCloud2 convention for "no
-    value" and each stage skips such points.
+    ``track_id`` is not an integer field of at most 32 bits or repeats a value.  NaN is
+    allowed: it is the PointCloud2 convention for "no value" and each stage skips such points.
     """
     points = read_points(msg).reshape(-1)
     present = set(points.dtype.names or ())

@@ -49,7 +49,9 @@ def epe(flow: np.ndarray, flow_gt: np.ndarray, valid: np.ndarray | None = None
     g = np.asarray(flow_gt, np.float64)
     if f.shape != g.shape or f.shape[-1] != 3:
         raise ValueError(f'flow: shape {f.shape} differs from flow_gt {g.shape} (or not ...x3)')
-    ok = np.isfinite(g).all(-1) if valid is None else np.asarray(valid, bool) & np.isfinite(g).all(-1)
+    ok = np.isfinite(g).all(-1)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
     if not ok.any():
         raise ValueError('valid: no entry with a finite ground truth to score')
     e = np.linalg.norm(np.nan_to_num(f[ok]) - g[ok], axis=-1)

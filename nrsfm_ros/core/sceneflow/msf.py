@@ -5,7 +5,7 @@ segment s gets one rigid motion ``T_s`` (camera-ref -> camera-c coordinates) per
 by damped Gauss-Newton on
 
     sum_p w_I rho(I_c(pi(T_s X_p)) - I_ref(p)) / sigma_I
-  + sum_p w_D rho(n_c . (T_s X_p - V_c(pi(T_s X_p)))) / sigma_D      (projective point-to-plane ICP)
+  + sum_p w_D rho(n_c . (T_s X_p - V_c(pi(T_s X_p)))) / sigma_D   (projective point-to-plane ICP)
   + nu sum_(s,s') w_ss' |T_s P - T_s' P|^2 / sigma_D                 (neighbour rigidity, at points
                                                                       P shared by the two segments)
 
@@ -100,7 +100,8 @@ def slic(gray: np.ndarray, depth: np.ndarray, n_segments: int = 300, compactness
     ys, xs = np.nonzero(ok)
     feat = np.stack([g[ys, xs], xs.astype(np.float32), ys.astype(np.float32), z[ys, xs]], 1)
     gh, gw = int(np.ceil(H / step)), int(np.ceil(W / step))
-    cy, cx = np.minimum((ys / step).astype(int), gh - 1), np.minimum((xs / step).astype(int), gw - 1)
+    cy = np.minimum((ys / step).astype(int), gh - 1)
+    cx = np.minimum((xs / step).astype(int), gw - 1)
     cell = cy * gw + cx
     n_cells = gh * gw
     # seeds: the mean of each cell's pixels

@@ -455,7 +455,7 @@ class TrackResult:
 
     W: np.ndarray
     V: np.ndarray
-    O: np.ndarray
+    O: np.ndarray   # noqa: E741 -- the occlusion tensor, named as W and V
     ids: np.ndarray
     reselections: list[int]
     seconds: float
@@ -480,7 +480,7 @@ def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True
     F, P = len(out), ids.size
     W = np.zeros((2 * F, P), np.float32)
     V = np.zeros((F, P), np.float32)
-    O = np.ones((F, P), np.float32)
+    O = np.ones((F, P), np.float32)   # noqa: E741
     reselections = [fr.index for fr in out[1:] if fr.reselected]
     last = reselections[0] if reselections else F
     order = np.argsort(ids)
