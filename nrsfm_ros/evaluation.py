@@ -14,13 +14,12 @@ import numpy as np
 
 from .core.metrics import StreamScore, score_stream
 from .core.nrsfm import reconstruct
-from .core.nrsfm.stream import StreamNRSfM
 from .io import pointcloud2 as pc2
 from .io.bag import deserialize, read_messages
 from .io.msgtypes import stamp_ns
 from .io.synth import SynthSequence
 from .params import ReconstructorParams
-from .processing import TOPICS
+from .processing import TOPICS, make_stream
 
 
 def read_clouds(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['points']
@@ -49,11 +48,7 @@ def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray, **params: An
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The streaming reconstructor (``StreamNRSfM``, reconstructor defaults unless given) fed
     the tracks W (2F, P), V (F, P) frame by frame: what it would publish, in image units."""
-    d = ReconstructorParams()
-    kw: dict[str, Any] = dict(mode=d.mode, window=d.window, rank=d.rank,
-                              iterations=d.iterations, method=d.method,
-                              batch_frames=d.batch_frames)
-    stream = StreamNRSfM(**{**kw, **params})
+    stream = make_stream(ReconstructorParams(), **params)
     out = {}
     F = V.shape[0]
     for f in range(F):

@@ -250,6 +250,14 @@ def to_metric(X: np.ndarray, t: np.ndarray, K: np.ndarray | None, mean_depth: fl
     return np.stack([x, y, z], axis=1)
 
 
+def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
+    """The reconstructor's streaming NRSfM for a parameter set (``overrides`` win)."""
+    kw = dict(mode=params.mode, window=params.window, rank=params.rank,
+              iterations=params.iterations, method=params.method,
+              batch_frames=params.batch_frames)
+    return StreamNRSfM(**{**kw, **overrides})
+
+
 class ReconstructorProcessor(Processor):
     """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id) + nrsfm/depth (32FC1 metres, NaN
     off the surface), one of each per tracks message (the first window's frames come out
@@ -266,10 +274,8 @@ class ReconstructorProcessor(Processor):
 
     def _reset(self) -> None:
         p = self.params
-        self.stream = StreamNRSfM(mode=p.mode, window=p.window, rank=p.rank,
-                                  iterations=p.iterations, method=p.method,
-                                  batch_frames=p.batch_frames)
-        self._pending: dict[int, tuple[int, str, np.ndarray, np.ndarray]] = {}
+        self.stream = make_stream(p)
+        self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
         self._rgb: dict[int, float] = {}
 
     def set_params(self, params: ReconstructorParams) -> None:
@@ -300,21 +306,17 @@ class ReconstructorProcessor(Processor):
         names = pc2.field_names(msg)
         rgb = pc2.read_points(msg).reshape(-1)['rgb'].astype(np.float32) if 'rgb' in names \
             else np.zeros(ids.size, np.float32)
-        if ids.size < 4:
+        if ids.size < 4:       # (unique ids: checked with the cloud rule in handle)
             raise MessageError('width', ids.size, 'need at least 4 tracks to reconstruct')
-        if np.unique(ids).size != ids.size:
-            raise MessageError('track_id', int(ids.size - np.unique(ids).size),
-                               'duplicated track ids in one cloud')
         finite = np.isfinite(cols[:, :2]).all(axis=1)
         if finite.sum() < 4:
             raise MessageError('u/v', 'non-finite', 'fewer than 4 finite track positions')
         vis = np.where(finite, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
         uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
         index = self.stream.frames_seen
-        self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv, vis)
-        new = ~np.isin(ids, np.fromiter(self._rgb, np.int64, len(self._rgb))) if self._rgb \
-            else np.ones(ids.size, bool)
-        self._rgb.update(zip(ids[new].tolist(), rgb[new].tolist()))
+        self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
+        for i, c in zip(ids.tolist(), rgb.tolist()):   # a track keeps its first colour
+            self._rgb.setdefault(i, c)
         return self._emit(self.stream.push(ids, uv, vis))
 
     def _emit(self, shapes: list[StreamShape]) -> list[Output]:
@@ -326,7 +328,7 @@ class ReconstructorProcessor(Processor):
         out: list[Output] = []
         K = self._intrinsics()
         for sh in shapes:
-            stamp, frame, uv_all, _ = self._pending.pop(sh.index)
+            stamp, frame, uv_all = self._pending.pop(sh.index)
             X = to_metric(sh.X, sh.t, K, self.params.mean_depth).astype(np.float32)
             ids = sh.ids.astype(np.uint32)
             rgb = np.array([self._rgb.get(int(i), 0.0) for i in sh.ids], np.float32)

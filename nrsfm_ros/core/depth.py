@@ -21,10 +21,9 @@ def depth_image(uv: np.ndarray, z: np.ndarray, size: tuple[int, int],
     if uv.shape != (z.size, 2):
         raise ValueError(f'uv: expected shape ({z.size}, 2), got {uv.shape}')
     out = np.full((h, w), np.nan, np.float32)
-    xi = np.rint(uv[:, 0]).astype(np.int64, copy=False) if z.size else np.zeros(0, np.int64)
-    yi = np.rint(uv[:, 1]).astype(np.int64, copy=False) if z.size else np.zeros(0, np.int64)
-    ok = np.isfinite(uv).all(axis=1) & np.isfinite(z) & (xi >= 0) & (xi < w) & (yi >= 0) \
-        & (yi < h)
+    finite = np.isfinite(uv).all(axis=1) & np.isfinite(z)
+    xi, yi = np.rint(np.where(finite[:, None], uv, -1.0)).astype(np.int64).T
+    ok = finite & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
     if ok.sum() < 3:
         return out
     xi, yi, zk = xi[ok], yi[ok], z[ok]
