@@ -300,7 +300,21 @@ def replay(node: Any, bag: str | Path, rate: float = 1.0, loop: bool = False,
             pubs[m.topic].publish(m.raw)
             counts[m.topic] = counts.get(m.topic, 0) + 1
         if not loop:
+            _wait_acked(pubs.values(), ACK_TIMEOUT_S)
             return counts
+
+
+ACK_TIMEOUT_S = 5.0
+
+
+def _wait_acked(pubs: Any, timeout: float) -> None:
+    """Block until every matched reliable reader acknowledged what was published (at most
+    ``timeout`` s in all): destroying a publisher earlier can drop the last samples in flight."""
+    from rclpy.duration import Duration
+    end = time.monotonic() + timeout
+    for p in pubs:
+        left = max(0.0, end - time.monotonic())
+        p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
 
 
 # ------------------------------------------------------------------ topic tools
