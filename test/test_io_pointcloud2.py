@@ -114,3 +114,87 @@ def test_rclpy_and_rosbags_messages_agree():
         assert bytes(m.data) == bytes(a.data)
         assert pc2.field_names(m) == ['x', 'track_id']
         assert m.header.stamp.sec == 0 and m.header.stamp.nanosec == 123456789
+
+
+def legacy_bytes(cols):
+    """The layout to_msg wrote before issue 17: one packed little-endian structured array, fields
+    in mapping order, no padding (the reference the in-place packing must reproduce)."""
+    arrays = {k: np.asarray(v) for k, v in cols.items()}
+    ref = np.empty(len(next(iter(arrays.values()))),
+                   np.dtype([(k, v.dtype.newbyteorder('<')) for k, v in arrays.items()]))
+    for k, v in arrays.items():
+        ref[k] = v
+    offsets = [ref.dtype.fields[k][1] for k in ref.dtype.names]
+    return ref.tobytes(), offsets, ref.dtype.itemsize
+
+
+def node_layouts(n, rng):
+    X = rng.normal(size=(n, 3)).astype(np.float32)
+    if n:
+        X[rng.integers(0, n, max(1, n // 50)), 1] = np.nan
+    V = rng.normal(size=(n, 3)).astype(np.float32)
+    ids = rng.permutation(n).astype(np.uint32)
+    rgb = pc2.pack_rgb(rng.integers(0, 256, (n, 3)).astype(np.uint8))
+    vis = (rng.random(n) > 0.2).astype(np.float32)
+    return {
+        'tracks': {'u': X[:, 0], 'v': X[:, 1], 'track_id': ids, 'visibility': vis, 'rgb': rgb,
+                   'occlusion': 1 - vis},
+        'points': {'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb, 'track_id': ids},
+        'scene_flow': {'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'vx': V[:, 0], 'vy': V[:, 1],
+                       'vz': V[:, 2], 'track_id': ids},
+        'mixed': {'a': rng.integers(0, 255, n).astype(np.uint8), 'b': X[:, 2].astype('>f8'),
+                  'c': rng.integers(-9, 9, n).astype('>i2'), 'd': ids.astype(np.int32),
+                  'e': V[:, 0].astype(np.float64)},
+    }
+
+
+# 70_001 points: several packing blocks with a ragged last one; 1 and 0: the edge cases
+@pytest.mark.parametrize('n', [0, 1, 1000, 70_001])
+@pytest.mark.parametrize('fac', FACTORIES, ids=lambda f: f.backend)
+def test_packed_bytes_identical_to_legacy_layout(fac, n):
+    rng = np.random.default_rng(n)
+    for name, cols in node_layouts(n, rng).items():
+        msg = pc2.to_msg(cols, fac, 7, 'cam')
+        data, offsets, step = legacy_bytes(cols)
+        assert bytes(msg.data) == data, name
+        assert [f.name for f in msg.fields] == list(cols), name
+        assert [f.offset for f in msg.fields] == offsets, name
+        assert all(f.count == 1 for f in msg.fields), name
+        assert (msg.point_step, msg.row_step, msg.width, msg.height) == (step, step * n, n, 1)
+        assert msg.is_dense == (n == 0 or name == 'mixed'), name
+        assert msg.is_bigendian is False
+        # and the same bytes the structured-array input and pack() give
+        packed = pc2.pack(cols)
+        assert packed.tobytes() == data
+        assert bytes(pc2.to_msg(packed, fac, 7, 'cam').data) == data
+        back = pc2.read_points(msg).reshape(-1)
+        for k, v in cols.items():
+            np.testing.assert_array_equal(back[k], v, err_msg=f'{name}.{k}')
+    if fac.backend == 'rclpy':
+        assert isinstance(msg.data, array.array) and msg.data.typecode == 'B'
+
+
+@pytest.mark.parametrize('fac', FACTORIES, ids=lambda f: f.backend)
+def test_structured_input_copied_byte_for_byte(fac):
+    # padding bytes, an organised cloud, count 3 and a non-contiguous input
+    dt = np.dtype({'names': ['x', 'n'], 'formats': ['<f4', ('<i2', (3,))], 'offsets': [0, 4],
+                   'itemsize': 16})
+    raw = np.random.default_rng(1).integers(0, 256, 16 * 24, dtype=np.uint8)
+    pts = raw.view(dt)[::2].reshape(3, 4)          # 12 points, every second one
+    msg = pc2.to_msg(pts, fac, 0, 'cam', height=3)
+    assert bytes(msg.data) == np.ascontiguousarray(pts).tobytes()
+    assert (msg.height, msg.width, msg.point_step, msg.row_step) == (3, 4, 16, 64)
+    assert [(f.name, f.offset, f.count) for f in msg.fields] == [('x', 0, 1), ('n', 4, 3)]
+
+
+@pytest.mark.parametrize('cols, text', [
+    ({}, 'at least one field'),
+    ({'x': np.zeros(3, np.float32), 'y': np.zeros(4, np.float32)}, 'same length'),
+    ({'x': np.zeros((3, 2), np.float32)}, "columns['x']: expected a 1-D array"),
+    ({'x': np.zeros(3, np.complex64)}, "columns['x']: dtype complex64"),
+])
+def test_bad_columns_name_the_column(cols, text):
+    with pytest.raises(ValueError, match=text.replace('[', r'\[').replace(']', r'\]')):
+        pc2.to_msg(cols, RclpyFactory(), 0, 'cam')
+    with pytest.raises(ValueError, match='height: 4 does not divide'):
+        pc2.to_msg({'x': np.zeros(6, np.float32)}, RosbagsFactory(), 0, 'cam', height=4)

@@ -2,8 +2,8 @@
 
 Reading is zero-copy: ``np.frombuffer`` over ``msg.data`` with a structured dtype built from
 ``fields`` (offsets, ``point_step`` padding, ``row_step`` padding, ``count > 1``, big-endian).
-Writing packs one contiguous structured array and hands its bytes to the message factory (which
-uses the fast ``array('B').frombytes`` path for rclpy messages).
+Writing packs the columns straight into the one buffer the message keeps (for rclpy messages
+its own ``array('B')``, grown in place: no copy, no per-element loop).
 
 Every malformed message raises :class:`~nrsfm_ros.io.errors.MessageError` naming the field.
 """
@@ -142,24 +142,53 @@ def unpack_rgb(packed: np.ndarray) -> np.ndarray:
     return np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1).astype(np.uint8)
 
 
-def pack(columns: Mapping[str, np.ndarray], shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Columns (name -> (N,) array) -> one packed structured array (N,) in their dtypes."""
+# Columns are written into the message buffer in blocks of about this many bytes of output, so
+# the destination block stays in cache while every field of it is written (a whole-column pass
+# per field streams the full buffer once per field).
+_BLOCK_BYTES = 1 << 18
+
+
+def _column_layout(columns: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], np.dtype]:
+    """Checked columns and the packed little-endian structured dtype they make, in their order."""
     if not columns:
         raise ValueError('columns: at least one field is needed')
     arrays = {k: np.asarray(v) for k, v in columns.items()}
-    n = {k: v.shape[0] for k, v in arrays.items()}
-    if len(set(n.values())) != 1:
-        raise ValueError(f'columns: all fields need the same length, got {n}')
+    n = {k: v.shape[0] if v.ndim else None for k, v in arrays.items()}
     for k, v in arrays.items():
         if v.ndim != 1:
             raise ValueError(f'columns[{k!r}]: expected a 1-D array, got shape {v.shape}')
         if v.dtype.str[1:] not in _FROM_NUMPY:
             raise ValueError(f'columns[{k!r}]: dtype {v.dtype} has no PointField datatype')
-    dtype = np.dtype([(k, v.dtype.newbyteorder('<')) for k, v in arrays.items()])
-    out = np.empty(next(iter(n.values())), dtype=dtype)
-    for k, v in arrays.items():
-        out[k] = v
+    if len(set(n.values())) != 1:
+        raise ValueError(f'columns: all fields need the same length, got {n}')
+    return arrays, np.dtype([(k, v.dtype.newbyteorder('<')) for k, v in arrays.items()])
+
+
+def _fill(out: np.ndarray, arrays: Mapping[str, np.ndarray]) -> None:
+    """Write each column into its field of the structured (N,) ``out``, block by block."""
+    n = out.shape[0]
+    step = max(1, _BLOCK_BYTES // max(out.dtype.itemsize, 1))
+    pairs = [(out[k], v) for k, v in arrays.items()]
+    if n <= step:
+        for dst, src in pairs:
+            dst[...] = src
+        return
+    for s in range(0, n, step):
+        e = s + step
+        for dst, src in pairs:
+            dst[s:e] = src[s:e]
+
+
+def pack(columns: Mapping[str, np.ndarray], shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Columns (name -> (N,) array) -> one packed structured array (N,) in their dtypes."""
+    arrays, dtype = _column_layout(columns)
+    out = np.empty(next(iter(arrays.values())).shape[0], dtype=dtype)
+    _fill(out, arrays)
     return out
+
+
+def _has_nan(arrays: Mapping[str, np.ndarray]) -> bool:
+    return any(v.dtype.kind == 'f' and bool(np.isnan(v).any()) for v in arrays.values())
 
 
 def to_msg(points: np.ndarray | Mapping[str, np.ndarray], factory: MsgFactory, stamp_ns: int,
@@ -167,35 +196,56 @@ def to_msg(points: np.ndarray | Mapping[str, np.ndarray], factory: MsgFactory, s
     """Build a PointCloud2 from a structured array or a mapping of columns.
 
     ``height > 1`` makes an organised cloud (N must equal height*width).  ``is_dense`` defaults to
-    "no NaN in any float field".
+    "no NaN in any float field".  Columns are packed straight into the one buffer the message
+    keeps (fields in mapping order, no padding, little-endian); a structured array is copied
+    byte for byte.  rclpy: that buffer is the message's own ``array('B')``, grown in place
+    after construction (``data=`` in the constructor copies twice, and each extra buffer of a
+    large cloud costs its page faults again once the allocator hands the memory back).
     """
-    if not isinstance(points, np.ndarray):
-        points = pack(points)
-    if points.dtype.names is None:
-        raise ValueError('points: expected a structured array or a mapping of columns')
-    points = np.ascontiguousarray(points.reshape(-1))
-    n = points.shape[0]
+    if isinstance(points, np.ndarray):
+        if points.dtype.names is None:
+            raise ValueError('points: expected a structured array or a mapping of columns')
+        flat = np.ascontiguousarray(points.reshape(-1))
+        dtype, n = flat.dtype, flat.shape[0]
+        arrays = None
+    else:
+        arrays, dtype = _column_layout(points)
+        n = next(iter(arrays.values())).shape[0]
     if height < 1 or n % height:
         raise ValueError(f'height: {height} does not divide the number of points {n}')
     width = n // height
+    names = dtype.names or ()
     fields = []
-    for name in points.dtype.names:
-        ftype, offset = points.dtype.fields[name][:2]
+    for name in names:
+        ftype, offset = dtype.fields[name][:2]
         base, count = (ftype.base, int(np.prod(ftype.shape))) if ftype.shape else (ftype, 1)
         if base.byteorder == '>':
             raise ValueError(f'points[{name!r}]: write little-endian data')
+        if base.str[1:] not in _FROM_NUMPY:
+            raise ValueError(f'points[{name!r}]: dtype {base} has no PointField datatype')
         fields.append(factory.make('sensor_msgs/msg/PointField', name=name, offset=int(offset),
                                    datatype=_FROM_NUMPY[base.str[1:]], count=count))
     if is_dense is None:
-        is_dense = True
-        for name in points.dtype.names:
-            if points.dtype[name].kind == 'f' and np.isnan(points[name]).any():
-                is_dense = False
-                break
-    return factory.make(
-        MSGTYPE, header=factory.header(stamp_ns, frame_id), height=height, width=width,
-        fields=fields, is_bigendian=False, point_step=points.dtype.itemsize,
-        row_step=points.dtype.itemsize * width, data=points.view(np.uint8), is_dense=is_dense)
+        is_dense = not _has_nan(arrays if arrays is not None else {k: flat[k] for k in names})
+    meta = dict(header=factory.header(stamp_ns, frame_id), height=height, width=width,
+                fields=fields, is_bigendian=False, point_step=dtype.itemsize,
+                row_step=dtype.itemsize * width, is_dense=bool(is_dense))
+    nbytes = n * dtype.itemsize
+    if factory.backend == 'rclpy':
+        # grow the message's own (empty) array('B') in place: one memset, no second buffer
+        msg = factory.make(MSGTYPE, **meta)
+        data = msg.data
+        data.append(0)
+        data *= nbytes
+        raw = np.frombuffer(data, np.uint8) if nbytes else np.zeros(0, np.uint8)
+    else:
+        raw = np.empty(nbytes, np.uint8)
+        msg = factory.make(MSGTYPE, data=raw, **meta)
+    if arrays is None:
+        raw[...] = flat.view(np.uint8).reshape(-1)
+    else:
+        _fill(raw.view(dtype), arrays)
+    return msg
 
 
 def check_cloud(msg: Any, required: Sequence[str], optional: Sequence[str] = (),
