@@ -48,6 +48,39 @@ TOPICS = {
 
 
 @dataclass
+class Timing:
+    """Processing time of one input kind's callbacks (those that processed their message).
+
+    ``count``, ``total_s`` and ``max_s`` cover every call; the percentiles cover the last
+    ``window`` calls (all of them with ``window=None``, as ``nrsfm-ros process`` reports)."""
+
+    window: int | None = 1000
+    count: int = 0
+    total_s: float = 0.0
+    max_s: float = 0.0
+    recent: deque = field(default_factory=deque)
+
+    def add(self, seconds: float) -> None:
+        self.count += 1
+        self.total_s += seconds
+        self.max_s = max(self.max_s, seconds)
+        self.recent.append(seconds)
+        if self.window is not None and len(self.recent) > self.window:
+            self.recent.popleft()
+
+    def summary(self) -> dict[str, float]:
+        """calls, total_s and mean/p50/p90/max in milliseconds."""
+        if not self.count:
+            return {'calls': 0, 'total_s': 0.0, 'mean_ms': 0.0, 'p50_ms': 0.0, 'p90_ms': 0.0,
+                    'max_ms': 0.0}
+        p50, p90 = np.percentile(np.fromiter(self.recent, float, len(self.recent)), [50, 90])
+        return {'calls': self.count, 'total_s': round(self.total_s, 4),
+                'mean_ms': round(1e3 * self.total_s / self.count, 3),
+                'p50_ms': round(1e3 * float(p50), 3), 'p90_ms': round(1e3 * float(p90), 3),
+                'max_ms': round(1e3 * self.max_s, 3)}
+
+
+@dataclass
 class Stats:
     """Counters reported on /diagnostics."""
 
@@ -62,6 +95,8 @@ class Stats:
     errors: dict[str, int] = field(default_factory=dict)   # '<input kind>:<field or type>'
     latencies: deque = field(default_factory=lambda: deque(maxlen=100))
     stamps: deque = field(default_factory=lambda: deque(maxlen=100))
+    timing: dict[str, Timing] = field(default_factory=dict)     # input kind -> its callbacks
+    timing_window: int | None = 1000    # percentiles over the last N calls (None: all)
 
     def rate_hz(self) -> float:
         if len(self.stamps) < 2:
@@ -71,6 +106,12 @@ class Stats:
 
     def latency_ms(self) -> float:
         return 1000.0 * float(np.mean(self.latencies)) if self.latencies else 0.0
+
+    def add_time(self, kind: str, seconds: float) -> None:
+        """Record one callback's processing time under input ``kind``."""
+        if kind not in self.timing:
+            self.timing[kind] = Timing(window=self.timing_window)
+        self.timing[kind].add(seconds)
 
     def count_error(self, key: str, text: str) -> bool:
         """Count one error of kind ``key``; True the first time that kind is seen."""
@@ -144,7 +185,9 @@ class Processor:
             self.stats.count_error(error_key(kind, wrapped), str(wrapped))
             self.recover(kind, err)
             raise wrapped from err
-        self.stats.latencies.append(time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
+        self.stats.latencies.append(seconds)
+        self.stats.add_time(kind, seconds)
         self.stats.processed += 1
         self.stats.published += len(out)
         return out
@@ -652,7 +695,10 @@ class SceneFlowProcessor(Processor):
 
 def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,
                     extra: dict[str, str] | None = None) -> Any:
-    """DiagnosticArray with one status: rate, latency, received/processed/dropped/malformed."""
+    """DiagnosticArray with one status: rate, latency, received/processed/dropped/malformed,
+    and per input kind the processing time of its callbacks: ``<kind>_ms_p50`` and ``_p90``
+    over the last ``stats.timing_window`` calls, ``_mean``, ``_max`` and ``<kind>_calls`` over
+    all of them."""
     values = {'rate_hz': f'{stats.rate_hz():.2f}', 'latency_ms': f'{stats.latency_ms():.2f}',
               'received': str(stats.received), 'processed': str(stats.processed),
               'published': str(stats.published), 'dropped': str(stats.dropped),
@@ -660,6 +706,11 @@ def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,
               'fallbacks': str(stats.fallbacks),
               'errors': ', '.join(f'{k}={n}' for k, n in sorted(stats.errors.items())),
               'last_error': stats.last_error}
+    for kind, timing in sorted(stats.timing.items()):
+        t = timing.summary()
+        values[f'{kind}_calls'] = str(t['calls'])
+        for k in ('mean', 'p50', 'p90', 'max'):
+            values[f'{kind}_ms_{k}'] = f"{t[k + '_ms']:.2f}"
     values.update(extra or {})
     level = 0 if not (stats.malformed or stats.dropped or stats.failed) else 1
     status = factory.make('diagnostic_msgs/msg/DiagnosticStatus',
