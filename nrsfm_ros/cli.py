@@ -16,7 +16,8 @@ EXAMPLES = {
     'synth': 'nrsfm-ros synth --surface face --size 320x240 --frames 80 --out bags/face',
     'record': 'nrsfm-ros record nrsfm/points scene_flow/points --out bags/rec --duration 10',
     'replay': 'nrsfm-ros replay bags/face --rate 0.5 --loop --clock',
-    'process': 'nrsfm-ros process bags/face --out bags/face_out --report report.json',
+    'process': 'nrsfm-ros process bags/face --out bags/face_out --report report.json; '
+               'nrsfm-ros process bags/a bags/b bags/c --out out/batch --jobs 2',
     'topic': 'nrsfm-ros topic list; nrsfm-ros topic echo nrsfm/points -n 1; '
              'nrsfm-ros topic hz camera/image_raw',
     'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
@@ -87,14 +88,21 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
                     help='longest wait for subscribers, seconds (default 10)')
 
-    pr = add('process', 'run the node pipeline offline over a bag (no DDS)')
-    pr.add_argument('bag')
-    pr.add_argument('--out', required=True, help='output bag folder')
+    pr = add('process', 'run the node pipeline offline over a bag (no DDS); several bags: each '
+             'in its own worker process, one output bag per input under --out')
+    pr.add_argument('bag', nargs='+', help='input bag(s)')
+    pr.add_argument('--out', required=True,
+                    help='output bag folder; with several bags the folder that gets one output '
+                    'bag per input (named like the input) and report.json')
     pr.add_argument('--pipeline', default='tracker,reconstructor,registrar,scene_flow',
                     help='comma-separated stages (default: all four)')
     pr.add_argument('--params', default=None,
                     help='folder with <node>.yaml parameter files (default: config/)')
-    pr.add_argument('--report', default=None, help='per-frame error report JSON')
+    pr.add_argument('--report', default=None,
+                    help='report JSON: per-frame errors and per-stage timing (several bags: '
+                    'the combined report, default OUT/report.json)')
+    pr.add_argument('--jobs', type=int, default=1, metavar='N',
+                    help='several bags: worker processes (default 1)')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
     pr.add_argument('--no-progress', action='store_true')
 
@@ -393,11 +401,16 @@ def cmd_process(args: argparse.Namespace) -> int:
     bad = [s for s in stages if s not in STAGES]
     if bad:
         raise CliError(f'--pipeline: unknown stage(s) {bad}; expected from {", ".join(STAGES)}')
+    if args.jobs < 1:
+        raise CliError(f'--jobs {args.jobs}: expected >= 1')
     params = load_params(args.params)
-    bag_info(args.bag)          # not a bag: one error line before anything is written
+    if len(args.bag) > 1:
+        return _process_many(args, stages, params)
+    bag = args.bag[0]
+    bag_info(bag)               # not a bag: one error line before anything is written
     if Path(args.out).exists():
         raise CliError(f'{args.out} exists; choose another --out or delete it')
-    report = process_bag(args.bag, args.out, stages, params,
+    report = process_bag(bag, args.out, stages, params,
                          progress=not args.no_progress, copy_inputs=args.copy_inputs)
     d = report.as_dict()
     if args.report:
@@ -406,6 +419,8 @@ def cmd_process(args: argparse.Namespace) -> int:
           f"({d['realtime_factor']}x real time); outputs:")
     for topic, n in d['outputs'].items():
         print(f'  {topic}: {n}')
+    for line in format_timing(d):
+        print(line)
     if d['failures']:
         print(f"{len(d['failures'])} frame(s) could not be processed:")
         for f in d['failures'][:20]:
@@ -416,6 +431,66 @@ def cmd_process(args: argparse.Namespace) -> int:
     if report.damage:
         raise CliError(report.damage[0])
     return 1 if d['failures'] else 0
+
+
+def format_timing(d: dict[str, Any]) -> list[str]:
+    """The per-stage timing table of a process report (ms per callback of each stage)."""
+    rows = [(stage, kind, t) for stage, kinds in d.get('timing', {}).items()
+            for kind, t in kinds.items()]
+    if not rows:
+        return []
+    io = d.get('io_s', {})
+    lines = ['per-stage processing time (ms per message; each stage alone):',
+             f"  {'stage':<14}{'input':<18}{'calls':>6}{'mean':>9}{'p50':>9}{'p90':>9}"
+             f"{'max':>9}{'total s':>9}"]
+    for stage, kind, t in rows:
+        lines.append(f"  {stage:<14}{kind:<18}{t['calls']:>6}{t['mean_ms']:>9.2f}"
+                     f"{t['p50_ms']:>9.2f}{t['p90_ms']:>9.2f}{t['max_ms']:>9.2f}"
+                     f"{t['total_s']:>9.3f}")
+    if io:
+        lines.append('  outside the stages: ' + ', '.join(f'{k} {v:.3f} s'
+                                                       for k, v in io.items()))
+    return lines
+
+
+def _process_many(args: argparse.Namespace, stages: list[str], params: Any) -> int:
+    """``process BAG BAG ... --out DIR --jobs N``: one worker process per bag."""
+    from .fleet import output_paths, process_bags, write_fleet_report
+    try:
+        output_paths(args.bag, args.out)
+    except ValueError as err:
+        raise CliError(str(err)) from err
+    report_path = Path(args.report) if args.report else Path(args.out) / 'report.json'
+    if report_path.exists():
+        raise CliError(f'--report {report_path} exists; choose another or delete it')
+    total = len(args.bag)
+    done = [0]
+
+    def on_done(entry: dict[str, Any]) -> None:
+        done[0] += 1
+        if args.no_progress:
+            return
+        what = entry['error'] if entry['status'] == 'failed' else \
+            f"{entry['frames_in']} frames in, {entry['frames_out']} out, " \
+            f"{entry['failures']} failure(s), {entry['seconds']:.2f} s"
+        print(f"[{done[0]}/{total}] {entry['bag']}: {entry['status']}: {what}", flush=True)
+
+    fleet = process_bags(args.bag, args.out, stages, params, jobs=args.jobs,
+                         copy_inputs=args.copy_inputs, on_done=on_done)
+    write_fleet_report(fleet, report_path)
+    d = fleet.as_dict()
+    tot, thr = d['total'], d['throughput']
+    print(f"{tot['bags']} bag(s) on {d['jobs']} worker(s) in {d['wall_s']} s: {tot['ok']} ok, "
+          f"{tot['frame_failures']} with frame failures, {tot['failed']} failed; "
+          f"{tot['frames_in']} frames in, {tot['frames_out']} out; "
+          f"{thr['frames_per_s']} frames/s, {thr['bags_per_s']} bags/s "
+          f"(worker time {tot['worker_s']} s)")
+    print(f"  {'bag':<32}{'status':<16}{'in':>6}{'out':>6}{'fail':>6}{'s':>8}  error")
+    for b in d['bags']:
+        print(f"  {Path(b['bag']).name:<32}{b['status']:<16}{b['frames_in']:>6}"
+              f"{b['frames_out']:>6}{b['failures']:>6}{b['seconds']:>8.2f}  {b['error']}")
+    print(f'outputs under {args.out}; report {report_path}')
+    return fleet.exit_code()
 
 
 def cmd_topic(args: argparse.Namespace) -> int:
