@@ -73,7 +73,8 @@ class FleetReport:
                                             for b in self.bags),
                       'failed': len(self.failed), 'frames_in': frames_in,
                       'frames_out': frames_out, 'messages_in': messages,
-                      'worker_s': round(sum(b['seconds'] for b in self.bags), 3)},
+                      'worker_s': round(sum(b['seconds'] for b in self.bags), 3),
+                      'worker_cpu_s': round(sum(b['cpu_s'] for b in self.bags), 3)},
             'throughput': {'bags_per_s': round(len(self.bags) / wall, 3) if wall else None,
                            'frames_per_s': round(frames_in / wall, 2) if wall else None,
                            'messages_per_s': round(messages / wall, 1) if wall else None},
@@ -117,14 +118,16 @@ def run_job(job: BagJob) -> dict[str, Any]:
     from .pipeline import process_bag
     entry: dict[str, Any] = {'bag': job.bag, 'out': job.out, 'status': 'failed', 'error': '',
                              'frames_in': 0, 'frames_out': 0, 'messages_in': 0, 'failures': 0,
-                             'first_failures': [], 'seconds': 0.0, 'pid': os.getpid()}
-    t0 = time.perf_counter()
+                             'first_failures': [], 'seconds': 0.0, 'cpu_s': 0.0,
+                             'pid': os.getpid()}
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         report = process_bag(job.bag, job.out, job.stages, job.params, progress=False,
                              copy_inputs=job.copy_inputs)
     except Exception as err:  # noqa: BLE001 -- one bad bag never stops the others
         entry['error'] = _error_line(err)
         entry['seconds'] = round(time.perf_counter() - t0, 3)
+        entry['cpu_s'] = round(time.process_time() - c0, 3)
         return entry
     d = report.as_dict()
     entry['frames_in'], entry['frames_out'] = _frames(d, job.stages)
@@ -133,6 +136,7 @@ def run_job(job: BagJob) -> dict[str, Any]:
     entry['first_failures'] = [f"stamp {f['stamp_ns']} {f['stage']} ({f['topic']}): "
                                f"{f['error']}" for f in d['failures'][:5]]
     entry['seconds'] = d['seconds']
+    entry['cpu_s'] = round(time.process_time() - c0, 3)     # < seconds: the CPU was shared
     entry['report'] = d
     if report.damage:
         entry['error'] = report.damage[0]
@@ -155,7 +159,7 @@ def _crashed(job: BagJob, err: BaseException) -> dict[str, Any]:
     return {'bag': job.bag, 'out': job.out, 'status': 'failed',
             'error': f'worker process died ({_error_line(err)})', 'frames_in': 0,
             'frames_out': 0, 'messages_in': 0, 'failures': 0, 'first_failures': [],
-            'seconds': 0.0, 'pid': None}
+            'seconds': 0.0, 'cpu_s': 0.0, 'pid': None}
 
 
 Worker = Callable[[BagJob], dict[str, Any]]
@@ -187,13 +191,15 @@ def process_bags(bags: Sequence[str | Path], out_dir: str | Path, stages: Sequen
                  params: Mapping[str, Any] | None = None, jobs: int = 1,
                  copy_inputs: bool = False,
                  on_done: Callable[[dict[str, Any]], None] | None = None,
-                 worker: Worker = run_job) -> FleetReport:
+                 worker: Worker = run_job, threads: int | None = None) -> FleetReport:
     """Process each bag into ``out_dir/<its name>`` on ``jobs`` worker processes.
 
     ``on_done(entry)`` is called in this process as each bag finishes.  When a worker dies
     (BrokenProcessPool), the bags it took down are run again one per fresh pool, so only the
     bag that kills its worker is reported as failed.  ``worker`` (a module-level function, it
-    is pickled to the workers) processes one :class:`BagJob`; tests replace it."""
+    is pickled to the workers) processes one :class:`BagJob`; tests replace it.  ``threads``:
+    each worker's OpenCV threads and, unless the environment sets them, its OpenMP/OpenBLAS
+    threads (default ``cpu_count // workers``)."""
     if jobs < 1:
         raise ValueError(f'--jobs {jobs}: expected >= 1')
     if not bags:
@@ -203,7 +209,10 @@ def process_bags(bags: Sequence[str | Path], out_dir: str | Path, stages: Sequen
     todo = [BagJob(i, str(b), str(o), tuple(stages), params, copy_inputs)
             for i, (b, o) in enumerate(zip(bags, outs))]
     workers = min(jobs, len(todo))
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    if threads is None:
+        threads = max(1, (os.cpu_count() or 1) // workers)
+    elif threads < 1:
+        raise ValueError(f'threads={threads}: expected >= 1')
     report = FleetReport(jobs=workers)
     results: dict[int, dict[str, Any]] = {}
     saved = {v: os.environ.get(v) for v in THREAD_VARS}
