@@ -73,7 +73,8 @@ class Timing:
         if not self.count:
             return {'calls': 0, 'total_s': 0.0, 'mean_ms': 0.0, 'p50_ms': 0.0, 'p90_ms': 0.0,
                     'max_ms': 0.0}
-        p50, p90 = np.percentile(np.fromiter(self.recent, float, len(self.recent)), [50, 90])
+        # list(): one C-level copy, safe while the worker thread appends (diagnostics timer)
+        p50, p90 = np.percentile(list(self.recent), [50, 90])
         return {'calls': self.count, 'total_s': round(self.total_s, 4),
                 'mean_ms': round(1e3 * self.total_s / self.count, 3),
                 'p50_ms': round(1e3 * float(p50), 3), 'p90_ms': round(1e3 * float(p90), 3),

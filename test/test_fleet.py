@@ -160,3 +160,30 @@ def test_diagnostics_carry_per_kind_timing():
     assert values['tracks_calls'] == '5' and values['tracks_ms_p50'] == '3.00'
     assert values['tracks_ms_max'] == '5.00' and values['tracks_ms_mean'] == '3.00'
     assert 'tracks_ms_p90' in values
+
+
+def test_node_diagnostics_time_each_input_kind_and_publishing(rclpy_context):
+    import numpy as np
+
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RclpyFactory
+    from nrsfm_ros.nodes.common import ProcessorNode
+    from nrsfm_ros.processing import SceneFlowProcessor, diagnostics_msg
+    node = ProcessorNode('scene_flow', SceneFlowProcessor,
+                         [('scene_flow', 'sensor_msgs/msg/PointCloud2')], context=rclpy_context)
+    try:
+        X = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32) + [0, 0, 4]
+        for f in range(3):
+            cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2] + 0.01 * f,
+                                'track_id': np.arange(200, dtype=np.uint32)},
+                               RclpyFactory(), 10 ** 9 + f * 10 ** 8, 'cam')
+            node._on_message('points', cloud)         # what the worker thread does
+        timing = node.processor.stats.timing
+        assert timing['points'].count == 3 and timing['publish'].count == 3
+        values = {kv.key: kv.value for kv in diagnostics_msg(
+            node.factory, 'scene_flow', node.processor.stats, 0).status[0].values}
+        assert values['points_calls'] == '3' and float(values['points_ms_p50']) > 0
+        assert float(values['publish_ms_max']) >= float(values['publish_ms_p50']) > 0
+        node.publish_diagnostics()                    # the node's own 1 Hz path
+    finally:
+        node.destroy_node()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import fields
@@ -165,7 +166,11 @@ class ProcessorNode(Node):
         except Exception as err:  # noqa: BLE001 -- handle contains; this is the last guard
             self._failed(kind, err)
             return
-        self.publish_outputs(outputs)
+        if outputs:
+            t0 = time.perf_counter()
+            self.publish_outputs(outputs)
+            # serializing and handing the outputs to DDS: kind 'publish' on /diagnostics
+            self.processor.stats.add_time('publish', time.perf_counter() - t0)
 
     def publish_outputs(self, outputs: list[tuple[str, str, Any]]) -> None:
         for topic, msgtype, out in outputs:
