@@ -10,6 +10,13 @@ Per incoming frame (streaming, bounded latency):
    by name) measures the small residual flow reference->warped frame (and warped frame->
    reference for the forward-backward check); both images are contrast-normalised first (local
    zero mean, unit deviation), so shading changes and foreshortening do not bias the data step;
+   recapture (``recapture_margin`` > 0): a second DIS pass matches the frame itself, seeded by
+   the prediction (DIS starts from it at its coarsest scale, so it searches coarse to fine
+   around it), and replaces the residual measurement where its local dissimilarity (below) is
+   lower by the margin (smoothed over ~3 px).  A pixel whose prediction went wrong (lost on a
+   foreshortened or shaded view, then carried by the subspace) distorts the pre-warped frame
+   so the residual pass cannot find it again; the coarse-to-fine pass can, once the view
+   allows (rendered face, 60 deg camera motion: mean track error 5.4 -> 1.4 px);
 3. occlusion tensor: per reference pixel, the forward-backward inconsistency of the residual flow
    (px) and the dissimilarity 1 - ZNCC of the reference and the aligned frame in a small window
    (invariant to gain and bias, i.e. to shading) give an occlusion probability;
@@ -66,6 +73,7 @@ class MFOFConfig:
     stride: int = 1                 # output every stride-th mask pixel as a track
     mask: str = 'full'              # 'full' or 'texture'
     min_std: float = 4.0            # texture mask threshold
+    recapture_margin: float = 0.07  # 1 - ZNCC gain for the coarse-to-fine pass to win (0: off)
 
     def validate(self) -> None:
         for name in ('preset', 'backward_preset'):
@@ -84,6 +92,8 @@ class MFOFConfig:
         for name in ('fb_threshold', 'ncc_threshold', 'huber_px'):
             if getattr(self, name) <= 0:
                 raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
+        if self.recapture_margin < 0:
+            raise ValueError(f'recapture_margin={self.recapture_margin}: expected >= 0 (0: off)')
         if self.subspace_weight < 0 or self.spatial_sigma < 0:
             raise ValueError('subspace_weight and spatial_sigma must be >= 0')
         for name in ('reselect_fraction', 'collapse_fraction'):
@@ -167,6 +177,8 @@ class MFOFTracker:
         self.config.validate()
         self._fwd = cv2.DISOpticalFlow_create(PRESETS[self.config.preset])
         self._bwd = cv2.DISOpticalFlow_create(PRESETS[self.config.backward_preset])
+        # the recapture pass has its own instance: DIS carries state from one call to the next
+        self._rec = cv2.DISOpticalFlow_create(PRESETS[self.config.preset])
         self.epoch = -1
         self.keep_history = False   # track_sequence: record (d, w) of the first reference
         self.history: list[tuple[np.ndarray, ...]] = []
@@ -269,16 +281,25 @@ class MFOFTracker:
         h, w = self._shape
         return (q @ self.basis).T.reshape(h, w, 2)
 
-    def occlusion(self, aligned: np.ndarray, flow: np.ndarray, fb_sq: np.ndarray | None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+    def dissimilarity(self, aligned: np.ndarray) -> np.ndarray:
+        """1 - local ZNCC (H, W) of the reference and the frame ``aligned`` onto it."""
+        return 1.0 - local_zncc(self._ref_f, aligned, a_stats=self._ref_stats)
+
+    def occlusion(self, aligned: np.ndarray | None, flow: np.ndarray, fb_sq: np.ndarray | None,
+                  dissimilar: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Occlusion probability (H, W) and in-view mask (H, W) of reference pixels, from the
         frame ``aligned`` onto the reference (float32 (H, W)) by the reference->frame ``flow``
-        and the squared forward-backward error ``fb_sq`` (px^2, (H, W); None: no FB check)."""
+        and the squared forward-backward error ``fb_sq`` (px^2, (H, W); None: no FB check);
+        ``dissimilar``: ``dissimilarity(aligned)`` when already computed (aligned may then be
+        None)."""
         c = self.config
         h, w = self._shape
         x, y = self._gx + flow[..., 0], self._gy + flow[..., 1]
         inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-        dissimilar = 1.0 - local_zncc(self._ref_f, aligned, a_stats=self._ref_stats)
+        if dissimilar is None:
+            if aligned is None:
+                raise ValueError('occlusion: pass the aligned frame or its dissimilarity')
+            dissimilar = self.dissimilarity(aligned)
         score = (dissimilar / c.ncc_threshold) ** 2
         if fb_sq is not None:
             score = score + fb_sq / c.fb_threshold ** 2
@@ -298,7 +319,8 @@ class MFOFTracker:
         pred = np.ascontiguousarray(self._predict())
         # data step on the frame pre-warped by the prediction: DIS measures only the residual
         # r (small, locally undistorted), so u(x) = r(x) + pred(x + r(x))
-        warped = _warp(contrast_normalise(grey), gx, gy, pred)
+        grey_n = contrast_normalise(grey)
+        warped = _warp(grey_n, gx, gy, pred)
         r = self._fwd.calc(self._ref_n, warped, None)
         mx, my = gx + r[..., 0], gy + r[..., 1]
         u = r + _remap(pred, mx, my)
@@ -307,8 +329,11 @@ class MFOFTracker:
             back = self._bwd.calc(warped, self._ref_n, np.ascontiguousarray(-r))
             fb = _remap(back, mx, my) + r
             fb_sq = fb[..., 0] ** 2 + fb[..., 1] ** 2
-        aligned = _warp(grey.astype(np.float32), gx, gy, u)
-        occ, inside = self.occlusion(aligned, u, fb_sq)
+        grey_f = grey.astype(np.float32)
+        dis = self.dissimilarity(_warp(grey_f, gx, gy, u))
+        if c.recapture_margin > 0:
+            u, dis, fb_sq = self._recapture(grey_n, grey_f, pred, u, dis, fb_sq)
+        occ, inside = self.occlusion(None, u, fb_sq, dis)
         weight = ((1.0 - occ) * inside).ravel()
         w_data = weight
         d = u.reshape(-1, 2).T
@@ -346,6 +371,24 @@ class MFOFTracker:
         if self._low_visible >= c.reselect_patience:
             return self._reselect(grey, uv, vis_t, occ_t)
         return MFOFFrame(self._index, uv, vis_t, occ_t, flow, self.ids)
+
+    def _recapture(self, grey_n: np.ndarray, grey_f: np.ndarray, pred: np.ndarray,
+                   u: np.ndarray, dis: np.ndarray, fb_sq: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The coarse-to-fine pass: DIS reference -> frame seeded by the prediction; where
+        it matches better (smoothed dissimilarity lower by ``recapture_margin``) it replaces
+        the flow ``u`` and dissimilarity ``dis``; the FB error is unknown there (set to 0)."""
+        u2 = self._rec.calc(self._ref_n, grey_n, pred.copy())
+        dis2 = self.dissimilarity(_warp(grey_f, self._gx, self._gy, u2))
+        gain = cv2.GaussianBlur((dis - dis2).astype(np.float32), (0, 0), 3.0)
+        better = gain > self.config.recapture_margin
+        if not better.any():
+            return u, dis, fb_sq
+        u = np.where(better[..., None], u2, u)
+        dis = np.where(better, dis2, dis)
+        if fb_sq is not None:
+            fb_sq = np.where(better, 0.0, fb_sq)
+        return u, dis, fb_sq
 
     def _tracks(self, flow: np.ndarray, fused: np.ndarray, vis: np.ndarray, occ: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
