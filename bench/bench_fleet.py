@@ -39,7 +39,7 @@ def main() -> int:
     p.add_argument('--repeat', type=int, default=2)
     p.add_argument('--threads', type=int, default=None,
                    help='native threads per worker for every --jobs value (default: the '
-                   'fleet default cpu_count // jobs); also sets OMP/OPENBLAS/MKL_NUM_THREADS')
+                   'fleet default, 1); also sets OMP/OPENBLAS/MKL_NUM_THREADS')
     p.add_argument('--json', default=None)
     args = p.parse_args()
     w, h = (int(v) for v in args.size.split('x'))
@@ -74,7 +74,7 @@ def main() -> int:
                       f'worker CPU {rep["total"]["worker_cpu_s"]:.2f} s, '
                       f'load {os.getloadavg()[0]:.2f}', flush=True)
     base = statistics.median(x['wall_s'] for x in runs[jobs[0]])
-    threads = args.threads or 'cpu_count // jobs'
+    threads = args.threads or 'default (1)'
     print(f'\n{args.bags} bags, {w}x{h}, {args.frames} frames, all four stages; threads per '
           f'worker {threads}; {os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.2f} at '
           'the end)')
