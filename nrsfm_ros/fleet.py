@@ -105,7 +105,8 @@ def output_paths(bags: Sequence[str | Path], out_dir: str | Path) -> list[Path]:
 
 def _frames(report: Mapping[str, Any], stages: Sequence[str]) -> tuple[int, int]:
     inputs, outputs = report.get('inputs', {}), report.get('outputs', {})
-    first, last = stages[0], stages[-1]
+    order = [s for s in FRAME_OUTPUTS if s in stages]        # pipeline order
+    first, last = order[0], order[-1]
     frames_in = max((inputs.get(t, 0) for t in FRAME_INPUTS[first]), default=0)
     return frames_in, outputs.get(FRAME_OUTPUTS[last], 0)
 
@@ -138,7 +139,7 @@ def run_job(job: BagJob) -> dict[str, Any]:
     entry['first_failures'] = [f"stamp {f['stamp_ns']} {f['stage']} ({f['topic']}): "
                                f"{f['error']}" for f in d['failures'][:5]]
     entry['seconds'] = d['seconds']
-    entry['cpu_s'] = round(time.process_time() - c0, 3)     # < seconds: the CPU was shared
+    entry['cpu_s'] = round(time.process_time() - c0, 3)     # well below seconds: shared CPU
     entry['report'] = d
     if report.damage:
         entry['error'] = report.damage[0]
