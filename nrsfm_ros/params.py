@@ -145,6 +145,11 @@ class ReconstructorParams(Params):
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
+    projection: str = rule('perspective', _one_of('perspective', 'weak'),
+                           'camera model of batch solves: perspective (with CameraInfo: the '
+                           'weak-perspective solution refined by affine iterations, kept only '
+                           'where it reprojects better) or weak (weak perspective); window and '
+                           'online modes are weak perspective')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
                              'scale of the metric output, which one camera cannot observe')
     publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '

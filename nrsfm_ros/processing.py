@@ -294,11 +294,17 @@ def to_metric(X: np.ndarray, t: np.ndarray, K: np.ndarray | None, mean_depth: fl
     return np.stack([x, y, z], axis=1)
 
 
+def project(X: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection (P, 2) px of camera-frame points X (P, 3) with intrinsics K."""
+    z = np.where(X[:, 2] > 0, X[:, 2], np.nan)
+    return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
+
+
 def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
     """The reconstructor's streaming NRSfM for a parameter set (``overrides`` win)."""
     kw = dict(mode=params.mode, window=params.window, rank=params.rank,
               iterations=params.iterations, method=params.method,
-              batch_frames=params.batch_frames)
+              batch_frames=params.batch_frames, projection=params.projection)
     return StreamNRSfM(**{**kw, **overrides})
 
 
@@ -357,6 +363,8 @@ class ReconstructorProcessor(Processor):
             raise MessageError('u/v', 'non-finite', 'fewer than 4 finite track positions')
         vis = np.where(finite, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
         uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
+        if self.K is not None:          # the perspective refinement needs the true intrinsics
+            self.stream.set_intrinsics(float(self.K[0, 0]), self.K[:2, 2])
         index = self.stream.frames_seen
         self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
         for i, c in zip(ids.tolist(), rgb.tolist()):   # a track keeps its first colour
@@ -381,7 +389,7 @@ class ReconstructorProcessor(Processor):
             out.append((TOPICS['points'], PC2, cloud))
             if K is not None and self.params.publish_depth:
                 size = self.image_size or _size_from(uv_all)
-                uv = sh.X[:, :2] + sh.t
+                uv = project(X, K)                      # the published cloud, as imaged
                 depth = depth_image(uv, X[:, 2], size)
                 out.append((TOPICS['nrsfm_depth'], IMAGE,
                             img_io.array_to_image(depth, '32FC1', self.factory, stamp, frame)))

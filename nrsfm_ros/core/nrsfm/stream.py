@@ -12,7 +12,10 @@ there.  Modes (the reconstructor's ``mode``):
   rank-K shape basis (O(KP)); the basis is rebuilt from the buffered frames when more than
   ``REBASE_FRACTION`` of a frame's tracks are not in it.
 * ``batch``: ``batch_frames`` frames at a time with ``method`` (``auto``: ``planar`` when its
-  orthonormality test says the rest shape is planar, else ``bmm``).
+  orthonormality test says the rest shape is planar, else ``bmm``).  With ``projection``
+  ``perspective`` and intrinsics (:meth:`StreamNRSfM.set_intrinsics`) every batch solve is
+  refined for a perspective camera (:func:`perspective.perspective_solve`: the shapes are then in
+  weak-perspective-equivalent image coordinates, which back-project exactly).
 
 Gauge: every shape is in its frame's camera frame in image units (x, y the centred pixel
 coordinates), so rotation and scale are fixed by the data; the remaining depth reflection is
@@ -29,9 +32,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .factorization import low_rank, rigid
+from .perspective import perspective_solve
 from .result import NRSfMResult
 
 MODES = ('window', 'online', 'batch')
+PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 
@@ -75,10 +80,15 @@ class StreamNRSfM:
 
     def __init__(self, mode: str = 'window', window: int = 15, rank: int = 2,
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
-                 solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None
-                 ) -> None:
+                 solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
+                 projection: str = 'weak') -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
+        if projection not in PROJECTIONS:
+            raise ValueError(f'projection={projection!r}: expected one of {PROJECTIONS}')
+        self.projection = projection
+        self._intrinsics: tuple[float, np.ndarray] | None = None
+        self.perspective_solves = 0      # batch solves where the perspective model won
         for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
                                                                         1),
                             ('batch_frames', batch_frames, 3)):
@@ -101,6 +111,15 @@ class StreamNRSfM:
     @property
     def frames_seen(self) -> int:
         return self._count
+
+    def set_intrinsics(self, focal: float, principal: np.ndarray) -> None:
+        """Focal length (px) and principal point (cx, cy) of the camera, for ``perspective``."""
+        principal = np.asarray(principal, dtype=np.float64).reshape(-1)
+        if not (np.isfinite(focal) and focal > 0):
+            raise ValueError(f'focal: expected a finite focal length > 0 px, got {focal}')
+        if principal.shape != (2,) or not np.isfinite(principal).all():
+            raise ValueError(f'principal: expected a finite (cx, cy), got {principal}')
+        self._intrinsics = (float(focal), principal)
 
     # ------------------------------------------------------------------ public
     def push(self, ids: np.ndarray, uv: np.ndarray, visibility: np.ndarray | None = None
@@ -184,8 +203,18 @@ class StreamNRSfM:
         if len(frames) == 2:
             res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
-            res = self._safe(lambda: self._solver(W, V, self.method, self.rank), W, V, frames)
+            res = self._safe(lambda: self._batch_solve(W, V), W, V, frames)
         return self._emit(frames, ids, res, list(self._pending))
+
+    def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+        def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+            return self._solver(W, V, self.method, self.rank)
+        if self.projection != 'perspective' or self._intrinsics is None:
+            return solve(W, V)
+        weak = solve(W, V)
+        res = perspective_solve(solve, W, V, *self._intrinsics, weak=weak)
+        self.perspective_solves += res is not weak
+        return res
 
     def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
               frames: list[_Frame]) -> NRSfMResult:

@@ -1,0 +1,104 @@
+"""Perspective NRSfM from any weak-perspective solver by affine iterations.
+
+With intrinsics (focal length ``f`` in px, principal point ``c``) a point at depth Z of a frame
+whose tracked centroid lies at depth Zbar projects to ``u = c + f X / Z``; a weak-perspective
+camera would have seen ``c + (u - c) Z / Zbar``.  The solver's shapes give, per frame and point,
+the relative depth ``z`` in image units, so ``Z / Zbar = 1 + z / f``: the measurements are
+corrected by that ratio and re-solved, a few times (Christy and Horaud's iteration; it converges
+in one or two steps when the depth relief is small against the distance).  The result is in the
+corrected (weak-perspective equivalent) image coordinates, so the usual back-projection with the
+stream's mean depth gives metric camera-frame shapes.
+
+Perspective also tells the two depth reflections of a weak-perspective solution apart: both
+are iterated from the first solution (one with its depth flipped) and the one whose *perspective*
+reprojection error in the original pixels is lower wins.  When it does not cut the
+weak-perspective solution's own error by ``MIN_GAIN`` (depth relief unobservable, e.g. a far or
+flat scene), the weak-perspective solution is returned unchanged.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from .result import NRSfMResult
+
+RATIO_RANGE = (0.5, 1.5)      # Z / Zbar kept in this range (a wild depth never explodes u)
+FLIP = np.diag([1.0, 1.0, -1.0])
+MIN_GAIN = 0.05               # perspective is kept when it cuts the pixel error by this much
+
+
+def depth_ratio(res: NRSfMResult, focal: float) -> np.ndarray:
+    """(F, P) Z / Zbar of each point from a weak-perspective result (image units)."""
+    z = res.S[:, :, 2] * res.scale[:, None]
+    return np.clip(1.0 + z / focal, *RATIO_RANGE)
+
+
+def perspective_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
+                      principal: np.ndarray, ratio: np.ndarray | float = 1.0) -> float:
+    """Visibility-weighted mean pixel distance between ``W`` and ``res`` imaged by a camera that
+    divides its weak-perspective projection by the depth ratio ``ratio`` (F, P) about the
+    principal point: the pixel error of a solve of measurements corrected by ``ratio`` (1: the
+    weak-perspective camera)."""
+    F, P = V.shape
+    c = np.asarray(principal, dtype=np.float64)[None, :, None]
+    weak = (res.scale[:, None, None] * res.S[:, :, :2].transpose(0, 2, 1)
+            + res.t[:, :, None])                                   # (F, 2, P)
+    u = c + (weak - c) / (ratio[:, None, :] if np.ndim(ratio) else ratio)
+    d = np.linalg.norm(u - W.reshape(F, 2, P), axis=1)
+    return float((d * V).sum() / max(V.sum(), 1e-12))
+
+
+def _flipped(res: NRSfMResult) -> NRSfMResult:
+    return replace(res, S=res.S * np.array([1.0, 1.0, -1.0]), R=FLIP @ res.R)
+
+
+def _aligned(res: NRSfMResult, z_prev: np.ndarray) -> NRSfMResult:
+    """``res`` in the depth reflection that agrees with the previous iterate's depths."""
+    z = res.S[:, :, 2] * res.scale[:, None]
+    return _flipped(res) if float((z * z_prev).sum()) < 0 else res
+
+
+def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W: np.ndarray,
+                      V: np.ndarray, focal: float, principal: np.ndarray,
+                      iterations: int = 1, weak: NRSfMResult | None = None) -> NRSfMResult:
+    """``solve(W, V)`` (any weak-perspective NRSfM) refined for a perspective camera; see the
+    module docstring.  ``iterations`` corrections after the reflection is chosen (>= 1, each one
+    solve; the choice costs two); ``weak``: ``solve(W, V)`` if already computed.  Returns
+    ``weak`` itself when the perspective model does not explain the tracks better."""
+    if not focal > 0 or not np.isfinite(focal):
+        raise ValueError(f'focal: expected a finite focal length > 0 px, got {focal}')
+    principal = np.asarray(principal, dtype=np.float64)
+    if principal.shape != (2,) or not np.isfinite(principal).all():
+        raise ValueError(f'principal: expected a finite (cx, cy), got {principal}')
+    if iterations < 1:
+        raise ValueError(f'iterations: expected >= 1, got {iterations}')
+    F, P = V.shape
+    Wf = W.reshape(F, 2, P)
+    c = principal[None, :, None]
+
+    def depths(res: NRSfMResult) -> np.ndarray:
+        return res.S[:, :, 2] * res.scale[:, None]
+
+    weak = solve(W, V) if weak is None else weak
+    if not (np.isfinite(weak.S).all() and np.isfinite(weak.t).all()):
+        return weak
+    weak_err = perspective_error(weak, W, V, focal, principal)
+
+    def step(prev: NRSfMResult) -> tuple[float, NRSfMResult]:
+        ratio = depth_ratio(prev, focal)
+        corrected = ((Wf - c) * ratio[:, None, :] + c).reshape(2 * F, P)
+        res = _aligned(solve(corrected, V), depths(prev))
+        return perspective_error(res, W, V, focal, principal, ratio), res
+
+    # one corrected solve from each reflection, then only the better one goes on
+    err, res = min((step(start) for start in (weak, _flipped(weak))), key=lambda e: e[0])
+    for _ in range(iterations - 1):
+        nxt_err, nxt = step(res)
+        if not nxt_err < err:
+            break
+        err, res = nxt_err, nxt
+    if err < (1.0 - MIN_GAIN) * weak_err and np.isfinite(res.S).all():
+        return replace(res, residual_px=err)
+    return weak
