@@ -73,7 +73,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
             row[f'gt_{m}'] = float('nan')
             row[f'gt_{m}_error'] = str(err)
         row[f'gt_{m}_s'] = time.perf_counter() - t
-    st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids), seq).summary()
+    st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K), seq).summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
     if case.exists():

@@ -44,11 +44,15 @@ def shapes_as_clouds(S: np.ndarray, ids: np.ndarray) -> dict[int, tuple[np.ndarr
     return {f: (S[f], ids) for f in range(S.shape[0])}
 
 
-def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray, **params: Any
+def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray,
+                     K: np.ndarray | None = None, **params: Any
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The streaming reconstructor (``StreamNRSfM``, reconstructor defaults unless given) fed
-    the tracks W (2F, P), V (F, P) frame by frame: what it would publish, in image units."""
+    the tracks W (2F, P), V (F, P) frame by frame, with the camera intrinsics ``K`` as from
+    CameraInfo (None: none arrived): what it would publish, in image units."""
     stream = make_stream(ReconstructorParams(), **params)
+    if K is not None:
+        stream.set_intrinsics(float(K[0, 0]), np.asarray(K)[:2, 2])
     out = {}
     F = V.shape[0]
     for f in range(F):
