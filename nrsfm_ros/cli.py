@@ -211,8 +211,8 @@ def _one_line(err: BaseException) -> str:
 # ------------------------------------------------------------------ verbs
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import (SAMPLE, ensure_sample, format_summary, load_ground_truth, run_live,
-                       summarise, write_summary)
+    from .demo import SAMPLE, ensure_sample, format_summary, run_live, summarise, write_summary
+    from .evaluation import load_ground_truth
     out = Path(args.out)
     bag, npz = ensure_sample(Path(args.bags))
     print(f'sample bag: {bag}')

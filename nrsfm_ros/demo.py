@@ -15,14 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from .core.metrics import relative_epe, rotation_error_deg, score_stream
-from .io import pointcloud2 as pc2
-from .io.bag import deserialize, read_messages
+from .evaluation import evaluate_outputs, read_outputs
 from .io.export import render_png, write_ply
-from .io.msgtypes import stamp_ns
 from .io.sequence_bag import write_sequence_bag
-from .io.synth import SynthConfig, SynthSequence, generate, scene_flow_ground_truth
-from .processing import TOPICS, transform_matrix
+from .io.synth import SynthConfig, SynthSequence, generate
+from .processing import TOPICS
 
 OUTPUTS = {TOPICS[k]: t for k, t in [
     ('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image'),
@@ -55,17 +52,6 @@ def ensure_sample(bags_dir: Path, cfg: SynthConfig = SAMPLE) -> tuple[Path, Path
         shutil.rmtree(bag)
     write_sequence_bag(seq, bag)
     return bag, npz
-
-
-def load_ground_truth(npz: Path) -> SynthSequence:
-    d = np.load(npz)
-    cfg = SynthConfig(surface=str(d['surface']), width=d['images'].shape[2],
-                      height=d['images'].shape[1], frames=d['images'].shape[0],
-                      fps=float(d['fps']))
-    return SynthSequence(config=cfg, images=d['images'], depth=d['depth'], K=d['K'],
-                         T_camera_world=d['T_camera_world'], stamps_ns=d['stamps_ns'],
-                         track_ids=d['track_ids'], W=d['W'], V=d['V'], S=d['S'],
-                         S_world=d['S_world'])
 
 
 def run_live(bag: Path, out_bag: Path, frames: int, rate: float, timeout: float,
@@ -126,88 +112,22 @@ def run_live(bag: Path, out_bag: Path, frames: int, rate: float, timeout: float,
 
 
 def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any]:
-    """Accuracy and latency of the recorded outputs against the ground truth."""
-    stamps = {int(s): i for i, s in enumerate(seq.stamps_ns)}
-    id_index = {int(t): i for i, t in enumerate(seq.track_ids)}
-    counts: dict[str, int] = {}
-    recon: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    flows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    transforms: dict[int, np.ndarray] = {}
-    residuals: list[float] = []
-    latency: dict[str, float] = {}
-    reference = seq.S[0]
-    from scipy.spatial import cKDTree
-    ref_tree = cKDTree(reference)
-    for m in read_messages(out_bag):
-        counts[m.topic] = counts.get(m.topic, 0) + 1
-        if m.topic == TOPICS['points']:
-            msg = deserialize(m.raw, m.msgtype)
-            f = stamps.get(stamp_ns(msg.header))
-            if f is not None:
-                recon[f] = (pc2.read_xyz(msg, False),
-                            pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0],
-                            pc2.unpack_rgb(pc2.read_points(msg).reshape(-1)['rgb']))
-        elif m.topic == TOPICS['scene_flow']:
-            msg = deserialize(m.raw, m.msgtype)
-            f = stamps.get(stamp_ns(msg.header))
-            if f is not None:
-                flows[f] = (pc2.read_fields(msg, ('vx', 'vy', 'vz'), np.float64),
-                            pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0])
-        elif m.topic == TOPICS['aligned']:
-            msg = deserialize(m.raw, m.msgtype)
-            residuals.append(float(np.sqrt(np.mean(ref_tree.query(pc2.read_xyz(msg))[0] ** 2))))
-        elif m.topic == TOPICS['transform']:
-            msg = deserialize(m.raw, m.msgtype)
-            f = stamps.get(stamp_ns(msg.header))
-            if f is not None:
-                transforms[f] = transform_matrix(msg)
-        elif m.topic == TOPICS['diagnostics'].lstrip('/'):
-            msg = deserialize(m.raw, m.msgtype)
-            for st in msg.status:
-                vals = {kv.key: kv.value for kv in st.values}
-                if 'latency_ms' in vals and float(vals.get('processed', 0)) > 0:
-                    latency[st.hardware_id] = float(vals['latency_ms'])
-    summary: dict[str, Any] = {'frames_in': int(seq.S.shape[0]), 'outputs': counts}
-    if recon:
-        score = score_stream({f: (X, ids) for f, (X, ids, _) in recon.items()},
-                             seq.track_ids, seq.S)
-        sm = score.summary()
-        summary['e3d_B_frame_scaled'] = sm['e3d']
-        summary['e3d_static_oracle'] = sm['static']
-        summary['e3d_flat_plane'] = sm['flat']
-        summary['frames_scored'] = sm['frames_scored']
-        summary['frames_unscored'] = sm['unscored']
-        summary['points_per_frame'] = int(round(np.mean([r[1].size for r in recon.values()])))
-        summary['points_matched_per_frame'] = sm['points_matched_mean']
+    """Accuracy and latency of the recorded outputs against the ground truth
+    (``evaluation.evaluate_outputs``, what ``nrsfm-ros evaluate`` prints), and PLY/PNG renders
+    of the first, middle and last cloud."""
+    out = read_outputs(out_bag, seq, colours=True)
+    summary = {k: v for k, v in evaluate_outputs(out, seq).items()
+               if not k.startswith('per_frame')}
+    if out.clouds:
         out_dir.mkdir(parents=True, exist_ok=True)
-        frames = sorted(recon)
+        frames = sorted(out.clouds)
         for f in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
-            X, _, rgb = recon[f]
+            X, rgb = out.clouds[f][0], out.colours[f]
             write_ply(out_dir / f'points_{f:03d}.ply', X, rgb)
             render_png(out_dir / f'points_{f:03d}.png', X, rgb)
             render_png(out_dir / f'depth_{f:03d}.png', X)
             render_png(out_dir / f'ground_truth_{f:03d}.png', seq.S[f])
-    if transforms:
-        errs = []
-        R0 = seq.T_camera_world[0, :3, :3]
-        for f, T in transforms.items():
-            R_true = R0 @ seq.T_camera_world[f, :3, :3].T
-            errs.append(rotation_error_deg(T[:3, :3], R_true))
-        summary['registration_rotation_error_deg_median'] = float(np.median(errs))
-    if residuals:
-        summary['registration_rmse_m'] = float(np.mean(residuals))
-    if flows:
-        epes = []
-        for f, (v, ids) in flows.items():
-            if f == 0:
-                continue
-            cols = np.array([id_index.get(int(i), -1) for i in ids])
-            keep = cols >= 0
-            gt = scene_flow_ground_truth(seq, f)[cols[keep]]
-            epes.append(relative_epe(v[keep], gt))
-        if epes:
-            summary['scene_flow_relative_epe'] = float(np.mean(epes))
-    summary['latency_ms'] = latency
+    summary['latency_ms'] = out.latency
     return summary
 
 
