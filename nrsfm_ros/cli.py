@@ -21,6 +21,8 @@ EXAMPLES = {
     'topic': 'nrsfm-ros topic list; nrsfm-ros topic echo nrsfm/points -n 1; '
              'nrsfm-ros topic hz camera/image_raw',
     'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
+    'evaluate': 'nrsfm-ros evaluate bags/face_out --ground-truth bags/face.npz --plot error.png '
+                '--json eval.json   (bags/face.npz: what synth wrote beside bags/face)',
     'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
     'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method bmm --out shapes.npz',
     'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
@@ -117,6 +119,18 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument('--out', required=True)
     e.add_argument('--topic', default='nrsfm/points')
     e.add_argument('--every', type=int, default=1, help='export every N-th cloud')
+
+    ev = add('evaluate', 'score an output bag against the ground truth synth wrote: e3D of '
+             'nrsfm/points per frame with the static-oracle and flat-plane baselines on the same '
+             'frames and points, registration and scene-flow errors; unmatched frames listed, '
+             'never scored')
+    ev.add_argument('bag', help='output bag (of process, record or demo)')
+    ev.add_argument('--ground-truth', required=True, metavar='GT',
+                    help='the .npz that synth writes beside its bag (synth --out BAG: BAG.npz)')
+    ev.add_argument('--plot', default=None, metavar='PNG',
+                    help='write a PNG of e3D per frame against the baselines over time')
+    ev.add_argument('--json', default=None, metavar='FILE',
+                    help='write the numbers (and the per-frame e3D) as JSON')
 
     tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
     tr.add_argument('frames')
@@ -569,6 +583,119 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise CliError(f'{len(bad)} cloud(s) not exported: {bad[0]}'
                        + (f' (and {len(bad) - 1} more)' if len(bad) > 1 else ''))
     return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import (MIN_POINTS, evaluate_outputs, load_ground_truth, plot_errors,
+                             read_outputs)
+    from .io.bag import bag_info
+    from .processing import TOPICS
+    bag, gt = Path(args.bag), Path(args.ground_truth)
+    info = bag_info(bag)                # a missing or foreign bag: one error line naming it
+    seq = load_ground_truth(gt)
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError as err:
+            raise CliError('--plot needs matplotlib (.venv/bin/pip install -r '
+                           'requirements.txt)') from err
+    points = TOPICS['points']
+    if points not in info['topics']:
+        raise CliError(f'{bag}: no {points} topic to score (it has: '
+                       f'{", ".join(sorted(info["topics"])) or "nothing"})')
+    out = read_outputs(bag, seq)
+    if not out.clouds:
+        seen = out.unmatched.get(points, [])
+        raise CliError(f'{bag}: none of its {len(seen)} {points} cloud(s) has the stamp of a '
+                       f'frame of {gt} (clouds {min(seen, default=0)}..{max(seen, default=0)} '
+                       f'ns, ground truth {int(seq.stamps_ns[0])}..{int(seq.stamps_ns[-1])} ns): '
+                       'not the ground truth of this bag?')
+    r = evaluate_outputs(out, seq)
+    if r['frames_scored'] == 0:
+        raise CliError(f'{bag}: no {points} frame could be scored against {gt} (no cloud has '
+                       f'{MIN_POINTS} points with a ground-truth track id): not the ground truth '
+                       'of this bag?')
+    for line in format_evaluation(r, seq, bag, gt):
+        print(line)
+    if args.json:
+        Path(args.json).write_text(json.dumps(evaluation_json(r, seq, bag, gt), indent=2))
+        print(f'wrote {args.json}')
+    if args.plot:
+        plot_errors(r, seq, args.plot, title=f'{bag.name} against {gt.name}')
+        print(f'wrote {args.plot}')
+    if out.damage:
+        raise CliError(out.damage[0])
+    return 0
+
+
+def format_evaluation(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> list[str]:
+    """The printed report of ``evaluate`` (numbers as in the demo summary)."""
+    from .processing import TOPICS
+    F = r['frames_in']
+    outs = r['outputs']
+    lines = [f'{bag} against {gt}: {F} ground-truth frames, {seq.S.shape[1]} tracks',
+             f'frames in: {F}; frames out: ' + ', '.join(
+                 f'{t} {outs.get(t, 0)}' for t in (TOPICS['points'], TOPICS['nrsfm_depth'],
+                                                  TOPICS['aligned'], TOPICS['transform'],
+                                                  TOPICS['scene_flow'])),
+             f"nrsfm/points: {r['frames_scored']} of {F} frames scored; "
+             f"{r['points_matched_per_frame']:.0f} of {r['points_per_frame']} points per frame "
+             'matched to ground truth',
+             f"  e3D metric B (per-frame Procrustes + scale), mean over frames  "
+             f"{r['e3d_B_frame_scaled']:.4f}",
+             f"  static oracle (frame 0 repeated), same frames and points      "
+             f"{r['e3d_static_oracle']:.4f}   e3D/static {r['ratio_static']:.2f}x",
+             f"  flat plane (frame 0 flattened), same frames and points        "
+             f"{r['e3d_flat_plane']:.4f}   e3D/flat   {r['ratio_flat']:.2f}x"]
+    per = r.get('per_frame_e3d', {})
+    if per:
+        e = {f: v[0] for f, v in per.items()}
+        worst = max(e, key=e.get)
+        lines.append(f'  per frame: median {np.median(list(e.values())):.4f}, worst '
+                     f'{e[worst]:.4f} (frame {worst})')
+    if 'registration_rmse_m' in r:
+        lines.append(f"registration/aligned: RMSE to the frame-0 ground truth "
+                     f"{r['registration_rmse_m']:.4f} m ({r['registration_rmse_frames']} frames)")
+    if 'registration_rotation_error_deg_median' in r:
+        lines.append(f"registration/transform: rotation error, median "
+                     f"{r['registration_rotation_error_deg_median']:.2f} deg "
+                     f"({r['registration_rotation_frames']} frames)")
+    if 'scene_flow_relative_epe' in r:
+        lines.append(f"scene_flow/points: relative EPE {r['scene_flow_relative_epe']:.3f} "
+                     f"({r['scene_flow_frames_scored']} frames; frame 0 has no flow)")
+    elif outs.get(TOPICS['scene_flow']):
+        why = 'no frame with enough points matched' if 'scene_flow_unscored' in r else \
+            'the ground truth has no S_world / fps'
+        lines.append(f'scene_flow/points: not scored ({why})')
+    if r['frames_unscored']:
+        lines.append(f"unscored nrsfm/points frames ({len(r['frames_unscored'])}):")
+        lines += [f"  frame {f} (stamp {int(seq.stamps_ns[f])}): {r['unscored_reasons'][f]}"
+                  for f in r['frames_unscored']]
+    if r.get('scene_flow_unscored'):
+        lines.append(f"unscored scene_flow/points frames: {r['scene_flow_unscored']}")
+    for topic, stamps in r.get('unmatched_stamps', {}).items():
+        lines.append(f'{topic}: {len(stamps)} message(s) whose stamp is no ground-truth frame '
+                     f'(not scored): {", ".join(str(s) for s in stamps)}')
+    return lines
+
+
+def evaluation_json(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> dict[str, Any]:
+    """``evaluate --json``: the numbers under the demo summary's keys, per-frame e3D and
+    unscored frames as lists."""
+    t0 = int(seq.stamps_ns[0])
+    d = {'bag': str(bag), 'ground_truth': str(gt)}
+    d.update({k: v for k, v in r.items() if not k.startswith('per_frame')
+              and k != 'unscored_reasons'})
+    d['unscored'] = [{'frame': f, 'stamp_ns': int(seq.stamps_ns[f]), 'reason': why}
+                     for f, why in r.get('unscored_reasons', {}).items()]
+    d['per_frame'] = [{'frame': f, 'stamp_ns': int(seq.stamps_ns[f]),
+                       'time_s': (int(seq.stamps_ns[f]) - t0) / 1e9, 'e3d': e, 'static': st,
+                       'flat': fl, 'points_matched': n}
+                      for f, (e, st, fl, n) in sorted(r.get('per_frame_e3d', {}).items())]
+    sf = r.get('per_frame_scene_flow_relative_epe', {})
+    if sf:
+        d['per_frame_scene_flow'] = [{'frame': f, 'relative_epe': v} for f, v in sorted(sf.items())]
+    return d
 
 
 def _read_frames(path: Path) -> list[np.ndarray]:

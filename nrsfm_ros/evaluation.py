@@ -105,10 +105,11 @@ def load_ground_truth(path: str | Path) -> SynthSequence:
         hint = path.with_suffix('.npz')
         raise GroundTruthError(f'ground truth {path}: a folder, not the .npz that synth writes '
                                f'beside its bag' + (f' (try {hint})' if hint.exists() else ''))
+    if not zipfile.is_zipfile(path):
+        raise GroundTruthError(f'ground truth {path}: not an .npz archive (expected the .npz '
+                               'that synth writes beside its bag)')
     try:
         d = np.load(path, allow_pickle=False)
-        if not hasattr(d, 'files'):
-            raise GroundTruthError(f'ground truth {path}: a single array, not a synth .npz')
         missing = [k for k in GT_REQUIRED if k not in d.files]
         if missing:
             raise GroundTruthError(f'ground truth {path}: not a synth ground truth (no '
