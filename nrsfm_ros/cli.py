@@ -618,7 +618,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     for line in format_evaluation(r, seq, bag, gt):
         print(line)
     if args.json:
-        Path(args.json).write_text(json.dumps(evaluation_json(r, seq, bag, gt), indent=2))
+        Path(args.json).write_text(json.dumps(evaluation_json(r, seq, bag, gt), indent=2,
+                                              allow_nan=False))
         print(f'wrote {args.json}')
     if args.plot:
         plot_errors(r, seq, args.plot, title=f'{bag.name} against {gt.name}')
@@ -694,8 +695,16 @@ def evaluation_json(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> dict[st
                       for f, (e, st, fl, n) in sorted(r.get('per_frame_e3d', {}).items())]
     sf = r.get('per_frame_scene_flow_relative_epe', {})
     if sf:
-        d['per_frame_scene_flow'] = [{'frame': f, 'relative_epe': v} for f, v in sorted(sf.items())]
-    return d
+        d['per_frame_scene_flow'] = [{'frame': f, 'relative_epe': v}
+                                     for f, v in sorted(sf.items())]
+
+    def finite(v: Any) -> Any:      # strict JSON: a NaN or inf number is written as null
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+    return finite(d)
 
 
 def _read_frames(path: Path) -> list[np.ndarray]:
