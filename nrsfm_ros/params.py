@@ -110,6 +110,10 @@ class TrackerParams(Params):
                                'occlusion probability 1/2')
     ncc_threshold: float = rule(0.5, _positive, 'mfof: 1 - local ZNCC of the reference and the '
                                 'aligned frame at occlusion probability 1/2')
+    recapture_margin: float = rule(0.07, _non_negative, 'mfof: a second DIS pass on the frame '
+                                   'itself, seeded by the prediction, replaces the residual flow '
+                                   'where its local 1 - ZNCC is lower by this much (lost tracks '
+                                   'found again on foreshortened views; 0: off)')
     outlier_px: float = rule(3.0, _non_negative, 'mfof: data further than this from the '
                              'subspace loses weight (0: off)')
     reselect_fraction: float = rule(0.35, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
