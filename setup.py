@@ -16,6 +16,7 @@ setup(
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
                       'PyYAML'],
+    extras_require={'plot': ['matplotlib']},     # nrsfm-ros evaluate --plot
     zip_safe=True,
     maintainer='nrsfm_ros maintainers',
     maintainer_email='maintainers@nrsfm-ros.invalid',
