@@ -43,6 +43,10 @@ class SynthConfig:
     camera_motion_deg: float = 12.0
     amplitude: float = 1.0      # deformation amplitude multiplier (0: rigid)
     occluder: bool = False      # a textured disc sweeps across in front of the surface
+    # periodic deformation (0: off): the surface's time runs forwards and back over
+    # period_frames / fps seconds, tau(f) = T (1 - cos(2 pi f / period_frames)) / 2, so every
+    # state recurs (twice a period, breathing-like) while the camera keeps moving
+    period_frames: int = 0
     start_ns: int = 1_700_000_000 * 1_000_000_000
 
     def validate(self) -> None:
@@ -68,6 +72,24 @@ class SynthConfig:
             raise ValueError(f'amplitude={self.amplitude}: expected 0..{MAX_AMPLITUDE}')
         if not isinstance(self.occluder, (bool, np.bool_)):
             raise ValueError(f'occluder={self.occluder!r}: expected True or False')
+        _check_period(self.period_frames)
+
+
+def _check_period(period_frames: int) -> None:
+    if isinstance(period_frames, (bool, np.bool_)) or not isinstance(
+            period_frames, (int, np.integer)) or not (period_frames == 0 or period_frames >= 4):
+        raise ValueError(f'period_frames={period_frames!r}: expected 0 (off) or an integer '
+                         '>= 4 (frames per period of the deformation)')
+
+
+def deformation_time(f: int, fps: float, period_frames: int = 0) -> float:
+    """The surface's time (s) at frame f: f / fps, or with ``period_frames`` > 0 the periodic
+    sweep T (1 - cos(2 pi f / period_frames)) / 2 with T = period_frames / fps (the states of
+    [0, T] forwards, then back: frames f and f + period_frames, and f and period_frames - f,
+    deform identically)."""
+    if not period_frames:
+        return f / fps
+    return period_frames / fps * 0.5 * (1.0 - float(np.cos(2 * np.pi * f / period_frames)))
 
 
 @dataclass
@@ -94,6 +116,8 @@ class SynthSequence:
              'seed': np.array(c.seed), 'distance': np.array(c.distance),
              'noise': np.array(c.noise), 'camera_motion_deg': np.array(c.camera_motion_deg),
              'amplitude': np.array(c.amplitude), 'occluder_on': np.array(bool(c.occluder))}
+        if c.period_frames:
+            d['period_frames'] = np.array(c.period_frames)
         if self.occluder is not None:
             d['occluder'] = self.occluder
         return d
@@ -363,7 +387,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     pix = np.stack(np.meshgrid(np.arange(Wd), np.arange(H)), axis=-1).reshape(-1, 2) \
         if cfg.occluder else np.empty((0, 2))
     for fi in range(F):
-        tau = fi / cfg.fps
+        tau = deformation_time(fi, cfg.fps, cfg.period_frames)
         Xw = _surface(cfg.surface, s, t, tau, cfg.amplitude, phase)
         Xc = Xw @ poses[fi, :3, :3].T + poses[fi, :3, 3]
         uv = _project(K, Xc)
@@ -410,7 +434,8 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     S = np.empty((F, P, 3))
     Sw = np.empty((F, P, 3))
     for fi in range(F):
-        Xw = _surface(cfg.surface, ps, pt, fi / cfg.fps, cfg.amplitude, phase)
+        Xw = _surface(cfg.surface, ps, pt, deformation_time(fi, cfg.fps, cfg.period_frames),
+                      cfg.amplitude, phase)
         Xc = Xw @ poses[fi, :3, :3].T + poses[fi, :3, 3]
         uv = _project(K, Xc)
         Wt[2 * fi], Wt[2 * fi + 1] = uv[:, 0], uv[:, 1]
@@ -446,12 +471,13 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
                  projection: str = 'orthographic', camera_motion_deg: float = 40.0,
                  fps: float = 10.0, distance: float = 4.0, focal: float = 2000.0,
                  seed: int = 0, sampling: str = 'random',
-                 amplitude: float = 1.0) -> dict[str, np.ndarray]:
+                 amplitude: float = 1.0, period_frames: int = 0) -> dict[str, np.ndarray]:
     """Ground-truth dense tracks of a deforming surface without rendering (for NRSfM benchmarks
     at any size): ``points`` surface samples, the same camera path as ``generate``.
     ``sampling``: 'random' (uniform in the surface's domain) or 'grid' (a regular grid of the
     domain, about ``points`` samples, as a tracker's every-stride-th pixel gives).
     ``amplitude``: the deformation multiplier of ``SynthConfig`` (0: rigid).
+    ``period_frames``: periodic deformation as ``SynthConfig`` (0: off; the camera still moves).
 
     ``projection``: 'orthographic' (W = focal / distance x the camera-frame x, y) or
     'weak-perspective' (W = focal / mean depth of the frame x x, y).  Returns W (2F, P),
@@ -467,6 +493,7 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
         raise ValueError(f"sampling={sampling!r}: expected 'random' or 'grid'")
     if not 0 <= amplitude <= MAX_AMPLITUDE:
         raise ValueError(f'amplitude={amplitude}: expected 0..{MAX_AMPLITUDE}')
+    _check_period(period_frames)
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * np.pi, 3)
     cfg = SynthConfig(surface=surface, frames=frames, fps=fps, seed=seed, distance=distance,
@@ -487,7 +514,8 @@ def dense_tracks(surface: str = 'flag', frames: int = 60, points: int = 10000,
             keep = _in_domain(surface, cs, ct)
             s, t = np.concatenate([s, cs[keep]]), np.concatenate([t, ct[keep]])
         s, t = s[:points], t[:points]
-    Sw = np.stack([_surface(surface, s, t, f / fps, amplitude, phase) for f in range(frames)])
+    Sw = np.stack([_surface(surface, s, t, deformation_time(f, fps, period_frames), amplitude,
+                            phase) for f in range(frames)])
     S = np.einsum('fij,fpj->fpi', poses[:, :3, :3], Sw) + poses[:, None, :3, 3]
     k = focal / (distance if projection == 'orthographic' else S[:, :, 2].mean(1))
     W = (np.broadcast_to(np.reshape(k, (-1, 1, 1)), (frames, 1, 1)) * S[:, :, :2])

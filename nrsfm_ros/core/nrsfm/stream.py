@@ -16,6 +16,14 @@ there.  Modes (the reconstructor's ``mode``):
   ``perspective`` and intrinsics (:meth:`StreamNRSfM.set_intrinsics`) every batch solve is
   refined for a perspective camera (:func:`perspective.perspective_solve`: the shapes are then in
   weak-perspective-equivalent image coordinates, which back-project exactly).
+* ``dspr``: the first ``batch_frames`` frames solved as ``batch`` (published together), their
+  shapes clustered into a dynamic shape prior of distinct states (:mod:`.dspr`), then one shape
+  per frame at low latency: every state fitted at once by orthographic Procrustes; a frame whose
+  residual is under ``dspr_recurrence_px`` is a recurrence of that state (stored as camera +
+  state index), else a per-frame energy started from the best state gives the shape, which joins
+  the prior when farther than ``dspr_distinct`` from every state.  ``compression_ratio`` =
+  frames / states.  Tracks new since the prior get the depth of their nearest prior tracks in
+  the image (``dspr_new_tracks`` counts them).
 
 Gauge: every shape is in its frame's camera frame in image units (x, y the centred pixel
 coordinates), so rotation and scale are fixed by the data; the remaining depth reflection is
@@ -31,14 +39,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .dspr import DynamicShapePrior, object_shapes
 from .factorization import low_rank, rigid
 from .perspective import perspective_solve
 from .result import NRSfMResult
 
-MODES = ('window', 'online', 'batch')
+MODES = ('window', 'online', 'batch', 'dspr')
 PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
+NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
 
 
 @dataclass(frozen=True)
@@ -81,7 +91,8 @@ class StreamNRSfM:
     def __init__(self, mode: str = 'window', window: int = 15, rank: int = 2,
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
                  solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
-                 projection: str = 'weak') -> None:
+                 projection: str = 'weak', dspr_recurrence_px: float = 0.0,
+                 dspr_distinct: float = 0.02, dspr_prior_weight: float = 0.1) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if projection not in PROJECTIONS:
@@ -96,8 +107,16 @@ class StreamNRSfM:
                 raise ValueError(f'{name}: expected >= {lo}, got {v}')
         self.mode, self.window, self.rank, self.iterations = mode, window, rank, iterations
         self.method, self.batch_frames = method, batch_frames
+        for name, v in (('dspr_recurrence_px', dspr_recurrence_px),
+                        ('dspr_distinct', dspr_distinct)):
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f'{name}: expected a finite value >= 0, got {v}')
+        if not (np.isfinite(dspr_prior_weight) and dspr_prior_weight > 0):
+            raise ValueError(f'dspr_prior_weight: expected > 0, got {dspr_prior_weight}')
+        self.dspr_recurrence_px, self.dspr_distinct = dspr_recurrence_px, dspr_distinct
+        self.dspr_prior_weight = dspr_prior_weight
         self._solver = solver or _solve_default
-        size = batch_frames if mode == 'batch' else window
+        size = batch_frames if mode in ('batch', 'dspr') else window
         self._frames: deque[_Frame] = deque(maxlen=size)
         self._pending: list[_Frame] = []          # pushed, no shape published yet
         self._published: deque[StreamShape] = deque(maxlen=size)
@@ -107,6 +126,23 @@ class StreamNRSfM:
         self._R2 = np.eye(3)[:2]
         self._a = np.zeros(rank)
         self.fallbacks: list[tuple[int, str]] = []   # (frame, why) published by a fallback
+        self._flip = np.ones(3)                       # reflection of the last _emit
+        self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
+        self.prior: DynamicShapePrior | None = None   # dspr: the dynamic shape prior
+        self._prior_ids = np.empty(0, np.int64)
+        self._new_ids: set[int] = set()
+        self.dspr_seconds: list[float] = []           # dspr: per-frame solve time after the prior
+
+    @property
+    def compression_ratio(self) -> float:
+        """dspr: frames represented by the prior / its states (1.0 before it exists and in
+        the other modes, which store every shape)."""
+        return self.prior.compression_ratio if self.prior is not None else 1.0
+
+    @property
+    def dspr_new_tracks(self) -> int:
+        """dspr: distinct tracks published that are not in the prior (depth from neighbours)."""
+        return len(self._new_ids)
 
     @property
     def frames_seen(self) -> int:
@@ -137,10 +173,15 @@ class StreamNRSfM:
         self._count += 1
         self._frames.append(fr)
         self._pending.append(fr)
-        if self.mode == 'batch':
+        if self.mode == 'dspr' and self.prior is not None:
+            return [self._publish(self._step_dspr(fr))]
+        if self.mode in ('batch', 'dspr'):
             if len(self._pending) < self.batch_frames:
                 return []
-            return self._solve_batch(list(self._pending))
+            out = self._solve_batch(list(self._pending))
+            if self.mode == 'dspr':
+                self._build_prior()
+            return out
         if self.mode == 'online' and self._basis is not None:
             if self._new_fraction(fr) <= REBASE_FRACTION:
                 try:
@@ -158,7 +199,7 @@ class StreamNRSfM:
         if not self._pending:
             return []
         if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
-            return self._solve_batch(list(self._pending)) if self.mode == 'batch' \
+            return self._solve_batch(list(self._pending)) if self.mode in ('batch', 'dspr') \
                 else self._solve_window()
         # a single frame: no depth is observable; its points at the centroid's depth
         return [self._publish(_flat_shape(fr)) for fr in list(self._pending)]
@@ -204,7 +245,9 @@ class StreamNRSfM:
             res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
             res = self._safe(lambda: self._batch_solve(W, V), W, V, frames)
-        return self._emit(frames, ids, res, list(self._pending))
+        out = self._emit(frames, ids, res, list(self._pending))
+        self._batch_last = (ids, res, self._flip)
+        return out
 
     def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
         def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
@@ -244,8 +287,10 @@ class StreamNRSfM:
         depth reflection, published in order."""
         pos = {f.index: i for i, f in enumerate(frames)}
         X_all = res.S * res.scale[:, None, None]             # (F, P, 3) image units
+        self._flip = np.ones(3)
         if self._published:
-            X_all = X_all * self._reflection(frames, ids, X_all)
+            self._flip = self._reflection(frames, ids, X_all)
+            X_all = X_all * self._flip
         shapes = []
         for fr in list(wanted):
             if fr.index not in pos:         # left the buffer unsolved: its tracks, flat
@@ -288,6 +333,54 @@ class StreamNRSfM:
         self._pending = [f for f in self._pending if f.index != shape.index]
         self._published.append(shape)
         return shape
+
+    # ------------------------------------------------------------------ dspr
+    def _build_prior(self) -> None:
+        """The dynamic shape prior from the first batch's object-frame shapes, in the depth
+        reflection they were published in (object_shapes x the flip: a proper rotation of the
+        published camera-frame shapes)."""
+        assert self._batch_last is not None
+        ids, res, flip = self._batch_last
+        if res.method == 'flat' or res.S.shape[0] < 2:
+            return                              # nothing to learn from: stay in batch mode
+        shapes = object_shapes(res) * flip
+        self.prior, _ = DynamicShapePrior.from_batch(
+            replace(res, S=shapes, R=np.broadcast_to(np.eye(3), res.R.shape).copy(),
+                    scale=np.ones(res.S.shape[0])),
+            distinct=self.dspr_distinct, recurrence_px=self.dspr_recurrence_px or 2.0 * max(
+                res.residual_px if np.isfinite(res.residual_px) else 0.5, 0.5),
+            prior_weight=self.dspr_prior_weight)
+        self._prior_ids = ids
+
+    def _step_dspr(self, fr: _Frame) -> StreamShape:
+        """One frame through the prior; tracks not in the prior at their image neighbours'
+        depth; the flat shape (recorded in ``fallbacks``) when too few prior tracks are seen."""
+        assert self.prior is not None
+        pids = self._prior_ids
+        col, have = _lookup(pids, fr.ids)
+        uv = np.full((pids.size, 2), np.nan)
+        vis = np.zeros(pids.size)
+        uv[col[have]] = fr.uv[have]
+        vis[col[have]] = fr.vis[have]
+        try:
+            out = self.prior.step(uv, vis)
+        except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
+            self.fallbacks.append((fr.index, f'dspr: {type(err).__name__}: {err}'))
+            return _flat_shape(fr)
+        self.dspr_seconds.append(out.seconds)
+        X = np.empty((fr.ids.size, 3))
+        X[have] = out.X[col[have]]
+        if (~have).any():
+            self._new_ids.update(int(i) for i in fr.ids[~have])
+            X[~have, :2] = fr.uv[~have] - out.t
+            known = np.nonzero(have)[0]
+            from scipy.spatial import cKDTree
+            k = min(NEW_TRACK_NEIGHBOURS, known.size)
+            d, j = cKDTree(fr.uv[known]).query(fr.uv[~have], k=k)
+            d, j = d.reshape(-1, k), j.reshape(-1, k)
+            w = 1.0 / np.maximum(d, 1e-6)
+            X[~have, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
+        return StreamShape(fr.index, fr.ids, X, out.t, out.residual_px)
 
     # ------------------------------------------------------------------ online
     def _init_basis(self, ids: np.ndarray, res: NRSfMResult) -> None:
