@@ -215,7 +215,7 @@ class DynamicShapePrior:
     the compression ratio."""
 
     def __init__(self, states: np.ndarray, frames: int = 0, recurrence_px: float = 1.0,
-                 distinct: float = 0.02, prior_weight: float = 0.1, iterations: int = 5,
+                 distinct: float = 0.05, prior_weight: float = 0.01, iterations: int = 5,
                  blend: int = 3, max_states: int = 256) -> None:
         states = _check_states(states)
         for name, val, ok in (('recurrence_px', recurrence_px, recurrence_px >= 0),
@@ -239,8 +239,8 @@ class DynamicShapePrior:
         self.stored: list[tuple[int, np.ndarray, float, np.ndarray]] = []  # (k, R2, s, t)
 
     @classmethod
-    def from_batch(cls, res: NRSfMResult, distinct: float = 0.02, recurrence_px: float = 1.0,
-                   prior_weight: float = 0.1, iterations: int = 5, blend: int = 3
+    def from_batch(cls, res: NRSfMResult, distinct: float = 0.05, recurrence_px: float = 1.0,
+                   prior_weight: float = 0.01, iterations: int = 5, blend: int = 3
                    ) -> tuple[DynamicShapePrior, np.ndarray]:
         """The prior of a batch result (its object-frame shapes clustered) and the batch
         frames' state labels (F,)."""
@@ -294,7 +294,7 @@ class DynamicShapePrior:
         """The per-frame energy alone, started from state ``start`` with the target a blend of
         ``candidates`` (default: every state).  Returns the shape X (P, 3) in the camera frame
         (image units, centred), its coefficients over the candidates, and the candidate with
-        the largest coefficient (the state reached)."""
+        the nearest shape to X (:func:`shape_distance`: the state reached)."""
         states = self.states
         uv, v = _check_frame(uv, vis, states.shape[1])
         if not 0 <= start < states.shape[0]:
@@ -306,7 +306,7 @@ class DynamicShapePrior:
         X, R2, s, t, _ = self._refine(uv, v, start, cand, fit)
         a = self._last_alpha
         fr = self._frame(X, R2, s, v, t, start, False, False, 0.0, time.perf_counter())
-        return fr.X, a, int(cand[int(np.argmax(a))])
+        return fr.X, a, int(np.argmin(shape_distance(X, states)))
 
     def _refine(self, uv: np.ndarray, v: np.ndarray, start: int, cand: np.ndarray,
                 fit: StateFit) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
@@ -315,6 +315,7 @@ class DynamicShapePrior:
         R2, s = fit.R2[start], float(fit.scale[start])
         lam = self.prior_weight
         Vs = float(v.sum())
+        ww0 = float(np.einsum('p,pi,pi->', v, uv, uv))
         alpha = (cand == start).astype(np.float64)
         for _ in range(self.iterations):
             # target: the blend of candidate states (and t) that best explains the data
@@ -330,6 +331,14 @@ class DynamicShapePrior:
             rhs = np.concatenate([np.einsum('kpi,pi->k', qv, uv), v @ uv])
             sol = np.linalg.solve(G, rhs)
             alpha, t = sol[:m], sol[m:]
+            # descent guard: a candidate fitted alone explaining the data better than this
+            # blend (a start from the wrong state, its camera wrong too) restarts from it
+            r2 = max(ww0 - 2 * sol @ rhs + sol @ G @ sol, 0.0) / Vs
+            j = int(np.argmin(fit.residual_px[cand]))
+            if fit.residual_px[cand[j]] ** 2 < 0.999 * r2:
+                R2, s = fit.R2[cand[j]], float(fit.scale[cand[j]])
+                alpha = np.eye(m)[j]
+                t = fit.t[cand[j]] - s * R2 @ (v @ S[j] / Vs)
             T = np.einsum('k,kpi->pi', alpha, S)                 # (P, 3)
             # camera: Procrustes of the target
             f1 = _fit(T[None], uv, v)

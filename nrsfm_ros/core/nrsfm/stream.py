@@ -19,7 +19,8 @@ there.  Modes (the reconstructor's ``mode``):
 * ``dspr``: the first ``batch_frames`` frames solved as ``batch`` (published together), their
   shapes clustered into a dynamic shape prior of distinct states (:mod:`.dspr`), then one shape
   per frame at low latency: every state fitted at once by orthographic Procrustes; a frame whose
-  residual is under ``dspr_recurrence_px`` is a recurrence of that state (stored as camera +
+  residual is under ``dspr_recurrence_px`` (0: 1.5 x the batch's RMS residual, at least
+  0.75 px) is a recurrence of that state (stored as camera +
   state index), else a per-frame energy started from the best state gives the shape, which joins
   the prior when farther than ``dspr_distinct`` from every state.  ``compression_ratio`` =
   frames / states.  Tracks new since the prior get the depth of their nearest prior tracks in
@@ -49,6 +50,8 @@ PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
+RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
+RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 
 
 @dataclass(frozen=True)
@@ -92,7 +95,7 @@ class StreamNRSfM:
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
                  solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
                  projection: str = 'weak', dspr_recurrence_px: float = 0.0,
-                 dspr_distinct: float = 0.02, dspr_prior_weight: float = 0.1) -> None:
+                 dspr_distinct: float = 0.05, dspr_prior_weight: float = 0.01) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if projection not in PROJECTIONS:
@@ -347,8 +350,9 @@ class StreamNRSfM:
         self.prior, _ = DynamicShapePrior.from_batch(
             replace(res, S=shapes, R=np.broadcast_to(np.eye(3), res.R.shape).copy(),
                     scale=np.ones(res.S.shape[0])),
-            distinct=self.dspr_distinct, recurrence_px=self.dspr_recurrence_px or 2.0 * max(
-                res.residual_px if np.isfinite(res.residual_px) else 0.5, 0.5),
+            distinct=self.dspr_distinct, recurrence_px=self.dspr_recurrence_px
+            or RECURRENCE_AUTO * max(res.residual_px if np.isfinite(res.residual_px) else 0.0,
+                                     RECURRENCE_MIN_PX),
             prior_weight=self.dspr_prior_weight)
         self._prior_ids = ids
 
