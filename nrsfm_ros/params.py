@@ -136,17 +136,21 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('batch', _one_of('window', 'batch', 'online'),
+    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr'),
                      'batch: batch_frames frames at a time with method (the most accurate on '
                      'the pipeline benchmark); window: sliding window re-solved per frame '
                      '(lowest latency); online: the first window, then each frame fitted alone '
-                     'to its shape basis')
+                     'to its shape basis; dspr: the first batch as batch, then each frame '
+                     'matched against a dynamic shape prior of distinct states (a recurring '
+                     'state stored as camera + index: compression; else a per-frame energy, '
+                     'the new shape joining the prior)')
     method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
                                        'hdsm', 'va', 'planar'),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
                        'planar, else bmm; window and online modes run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
-    batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode)')
+    batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode; dspr: the '
+                             'batch the prior is built from)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     projection: str = rule('perspective', _one_of('perspective', 'weak'),
@@ -154,6 +158,17 @@ class ReconstructorParams(Params):
                            'weak-perspective solution refined by affine iterations, kept only '
                            'where it reprojects better) or weak (weak perspective); window and '
                            'online modes are weak perspective')
+    dspr_recurrence_px: float = rule(0.0, _non_negative,
+                                     'dspr: RMS reprojection residual (px) under which a frame '
+                                     'is a recurrence of a prior state (0: 1.5 x the first '
+                                     "batch's residual, at least 0.75 px)")
+    dspr_distinct: float = rule(0.05, _non_negative,
+                                'dspr: shape distance (sine of the angle after Procrustes) '
+                                'above which a shape is a new state (merges the batch, grows '
+                                'the prior)')
+    dspr_prior_weight: float = rule(0.01, _positive,
+                                    'dspr: weight of the closeness to the prior states against '
+                                    'the data term (px^2) in the per-frame energy')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
                              'scale of the metric output, which one camera cannot observe')
     publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '

@@ -18,7 +18,7 @@ def face():
     return d, np.arange(d['W'].shape[1])
 
 
-@pytest.mark.parametrize('mode', ['window', 'online', 'batch'])
+@pytest.mark.parametrize('mode', ['window', 'online', 'batch', 'dspr'])
 @pytest.mark.parametrize('frames', [1, 2, 7, 30])
 def test_one_shape_per_frame_in_order(face, mode, frames):
     d, ids = face
@@ -31,7 +31,7 @@ def test_one_shape_per_frame_in_order(face, mode, frames):
     assert s.flush() == []
 
 
-@pytest.mark.parametrize('mode', ['window', 'online', 'batch'])
+@pytest.mark.parametrize('mode', ['window', 'online', 'batch', 'dspr'])
 def test_track_set_change_keeps_every_frame_and_the_carried_ids(face, mode):
     """Half-way the track set changes (a re-selection: 70% carried, new ids added): no frame is
     lost and the carried tracks keep being reconstructed."""
@@ -54,6 +54,32 @@ def test_track_set_change_keeps_every_frame_and_the_carried_ids(face, mode):
     assert sorted(out) == list(range(30))
     for f in range(16, 30):
         assert np.isin(carried, out[f].ids).mean() > 0.95
+
+
+def test_dspr_publishes_one_shape_per_pushed_frame_after_the_prior_and_compresses():
+    """mode dspr on a periodic sequence: nothing until the first batch is full, then that
+    batch, then exactly one shape per push, in order; the compression ratio is reported; a
+    track new since the prior is published (at its neighbours' depth) and counted."""
+    d = dense_tracks('flag', frames=60, points=600, camera_motion_deg=30, period_frames=20,
+                     seed=1)
+    ids = np.arange(600)
+    s = StreamNRSfM(mode='dspr', batch_frames=20)
+    got, out = [], {}
+    for f in range(60):
+        fid, uv = ids, d['W'][2 * f:2 * f + 2].T
+        if f >= 40:                  # track 599 is lost, and comes back under a new id
+            fid = np.concatenate([ids[:-1], [10_000]])
+        shapes = s.push(fid, uv, d['V'][f])
+        assert len(shapes) == (20 if f == 19 else 0 if f < 19 else 1), f
+        got += [sh.index for sh in shapes]
+        out.update({sh.index: (sh.X, sh.ids) for sh in shapes})
+    assert got == list(range(60)) and s.flush() == []
+    assert s.prior is not None and s.compression_ratio >= 5.0        # measured 6.7x
+    assert s.dspr_new_tracks == 1 and 10_000 in out[45][1]
+    gt = {f: (X, np.where(i == 10_000, 599, i)) for f, (X, i) in out.items()}
+    sc = score_stream(gt, ids, d['S']).summary()
+    assert sc['frames_scored'] == 60 and sc['e3d'] < 0.6 * sc['static']    # 0.027 vs 0.066
+    assert np.median(s.dspr_seconds) < 0.05
 
 
 def test_duplicate_ids_rejected(face):
@@ -121,7 +147,7 @@ def test_score_stream_lists_unmatched_frames_and_scores_baselines():
     assert other.unscored == [0, 1, 2, 3, 4]
 
 
-@pytest.mark.parametrize('mode', ['window', 'batch'])
+@pytest.mark.parametrize('mode', ['window', 'batch', 'dspr'])
 def test_a_failing_solve_falls_back_and_loses_no_frame(face, mode):
     """A batch solver that raises gives the rigid fallback (recorded per frame), never a lost
     frame (the window runs lowrank, which this solver does not replace)."""
@@ -138,6 +164,8 @@ def test_a_failing_solve_falls_back_and_loses_no_frame(face, mode):
     assert all(np.isfinite(g.X).all() for g in got)
     if mode == 'batch':
         assert sorted(i for i, _ in s.fallbacks) == list(range(12))
+    if mode == 'dspr':      # the first batch falls back; the prior is built from it
+        assert sorted(i for i, _ in s.fallbacks) == list(range(6))
         assert 'LinAlgError' in s.fallbacks[0][1]
 
 
