@@ -9,6 +9,7 @@ import numpy as np
 from .amp import amp
 from .bmm import bmm, smsr
 from .cdf import cdf
+from .dspr import DynamicShapePrior
 from .hdsm import hdsm
 from .factorization import low_rank, rigid
 from .planar import planar
@@ -38,5 +39,5 @@ def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'bmm',
     return METHODS[method](W, V, **params)
 
 
-__all__ = ['METHODS', 'NRSfMResult', 'StreamNRSfM', 'check_tracks', 'low_rank',
-           'reconstruct', 'rigid']
+__all__ = ['METHODS', 'DynamicShapePrior', 'NRSfMResult', 'StreamNRSfM', 'check_tracks',
+           'low_rank', 'reconstruct', 'rigid']

@@ -230,7 +230,6 @@ class DynamicShapePrior:
         self._states = list(states - states.mean(axis=1, keepdims=True))
         self._stack: np.ndarray | None = None
         self._norms: np.ndarray | None = None
-        self._last_alpha = np.ones(1)
         self.recurrence_px, self.distinct = float(recurrence_px), float(distinct)
         self.prior_weight, self.iterations = float(prior_weight), int(iterations)
         self.blend, self.max_states = int(blend), int(max_states)
@@ -277,7 +276,7 @@ class DynamicShapePrior:
                                fit.t[best], best, True, False,
                                float(fit.residual_px[best]), t0)
         order = np.argsort(fit.residual_px)[:self.blend]
-        X, R2, s, t, resid = self._refine(uv, v, best, order, fit)
+        X, R2, s, t, resid, _ = self._refine(uv, v, best, order, fit)
         if self._norms is None or self._norms.size != states.shape[0]:
             self._norms = np.einsum('kpi,kpi->k', states, states)
         d = shape_distance(X, states, centred=True, norms=self._norms)
@@ -303,13 +302,15 @@ class DynamicShapePrior:
         if start not in cand:
             cand = np.concatenate([[start], cand])
         fit = _fit(states, uv, v)
-        X, R2, s, t, _ = self._refine(uv, v, start, cand, fit)
-        a = self._last_alpha
+        X, R2, s, t, _, a = self._refine(uv, v, start, cand, fit)
         fr = self._frame(X, R2, s, v, t, start, False, False, 0.0, time.perf_counter())
         return fr.X, a, int(np.argmin(shape_distance(X, states)))
 
     def _refine(self, uv: np.ndarray, v: np.ndarray, start: int, cand: np.ndarray,
-                fit: StateFit) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
+                fit: StateFit
+                ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float, np.ndarray]:
+        """The per-frame energy from state ``start`` over the candidate states ``cand``:
+        X (P, 3) object frame, camera rows R2, scale, t, residual (px), coefficients (m,)."""
         S = self.states[cand]                                  # (m, P, 3)
         m = S.shape[0]
         R2, s = fit.R2[start], float(fit.scale[start])
@@ -317,6 +318,7 @@ class DynamicShapePrior:
         Vs = float(v.sum())
         ww0 = float(np.einsum('p,pi,pi->', v, uv, uv))
         alpha = (cand == start).astype(np.float64)
+        T = self.states[start]
         for _ in range(self.iterations):
             # target: the blend of candidate states (and t) that best explains the data
             # (normal equations from the weighted moments of q_k = s R2 S_k, unknowns a, t)
@@ -349,9 +351,8 @@ class DynamicShapePrior:
         Pi_T = (T @ R2.T) @ R2
         X = T - Pi_T + ((v * s)[:, None] * ((uv - t) @ R2) + lam * Pi_T) \
             / (v * s * s + lam)[:, None]
-        self._last_alpha = alpha
         f1 = _fit(X[None], uv, v)
-        return X, f1.R2[0], float(f1.scale[0]), f1.t[0], float(f1.residual_px[0])
+        return X, f1.R2[0], float(f1.scale[0]), f1.t[0], float(f1.residual_px[0]), alpha
 
     def _frame(self, S: np.ndarray, R2: np.ndarray, s: float, v: np.ndarray, t: np.ndarray,
                k: int, recurring: bool, added: bool, resid: float, t0: float) -> DSPRFrame:
