@@ -316,9 +316,11 @@ def symmetric_equivalent(S: np.ndarray, R_found: np.ndarray, R_true: np.ndarray)
     from scipy.spatial import cKDTree
     if rotation_error_deg(R_found, R_true) <= 5.0:
         return False
+    # 4000 probes of the shape against all of it (a sparse subsample against itself has a
+    # mean gap near the 1% threshold, so exact symmetries failed the test)
+    S = S - S.mean(0)
     P = S[np.linspace(0, len(S) - 1, 4000).astype(np.intp)]
-    P = P - P.mean(0)
-    return float(cKDTree(P @ R_true.T).query(P @ R_found.T)[0].mean()) < 0.01
+    return float(cKDTree(S @ R_true.T).query(P @ R_found.T)[0].mean()) < 0.01
 
 
 def run_corpus(trials: int, shapes: int, all_peers: bool) -> list[dict]:

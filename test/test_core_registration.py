@@ -308,3 +308,78 @@ def test_global_init_finds_any_rotation_through_outliers_and_a_missing_part():
         assert g.candidate_scores.shape == (3,) and g.score == g.candidate_scores.max()
     with pytest.raises(ValueError, match="init='bad'"):
         register(src, tgt, method='icp', init='bad')
+
+
+def _box_surface(n: int, size, rng) -> np.ndarray:
+    """``n`` points spread by area over the faces of a box with edges ``size``."""
+    a = np.asarray(size, float)
+    areas = np.array([a[1] * a[2], a[0] * a[2], a[0] * a[1]]).repeat(2)
+    face = rng.choice(6, n, p=areas / areas.sum())
+    P = rng.uniform(-0.5, 0.5, (n, 3)) * a
+    axis = face // 2
+    P[np.arange(n), axis] = np.where(face % 2, 0.5, -0.5) * a[axis]
+    return P
+
+
+def _sheet(n: int, rng) -> np.ndarray:
+    u, v = rng.uniform(-1, 1, (2, n))
+    return 0.5 * np.stack([u, v, 0.5 * np.sin(2 * u) * np.cos(1.5 * v) + 0.3 * u * v
+                           + 0.2 * u ** 2], 1)
+
+
+def _hard_pair(draw, R: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
+    """source: ``draw(rng)`` with noise; target: an independent draw with 30% cut away by a
+    plane, noise, 50% uniform outliers, rotated by R and shifted."""
+    src = draw(rng)
+    src = src + rng.normal(0, 0.005, src.shape)
+    X = draw(rng)
+    h = X @ np.array([0.6, 0.0, 0.8])
+    part = X[h > np.quantile(h, 0.3)]
+    part = part + rng.normal(0, 0.005, part.shape)
+    clutter = rng.uniform(part.min(0), part.max(0), (len(part) // 2, 3))
+    return src, np.vstack([part, clutter]) @ R.T + [0.2, -0.1, 0.05]
+
+
+def test_global_start_flags_a_symmetric_box_and_trusts_an_asymmetric_shape():
+    """Failure detection (issue 15): a box with three different edges looks the same after a
+    half turn about any of its axes, so the best two hypotheses of the search are distinct
+    rotations with near-equal scores: converged False (the pose found is still one of the
+    symmetric answers).  A shape without symmetry under the same clutter: converged True and
+    the right pose."""
+    from nrsfm_ros.core.registration.globalsearch import global_pose
+    rng = np.random.default_rng(7)
+    R = Rotation.from_rotvec(np.radians(140) * np.array([0.3, 1.0, 0.2]) / 1.06).as_matrix()
+    src, tgt = _hard_pair(lambda g: _box_surface(8000, (1.0, 0.7, 0.45), g), R, rng)
+    g = global_pose(src, tgt)
+    assert g.ambiguous
+    res = register(src, tgt, method='icp-point-to-plane', init='global', trim=0.6)
+    assert not res.converged
+    halves = [np.eye(3), *(Rotation.from_rotvec(np.pi * e).as_matrix() for e in np.eye(3))]
+    err = min(rotation_error_deg(res.T_target_source[:3, :3], R @ H) for H in halves)
+    assert err < 1.0                                    # a symmetric answer, not a wrong pose
+    # a curved sheet without symmetry, same clutter and cut
+    src, tgt = _hard_pair(lambda g: _sheet(8000, g), R, rng)
+    g = global_pose(src, tgt)
+    assert not g.ambiguous
+    res = register(src, tgt, method='icp-point-to-plane', init='global', trim=0.6)
+    assert res.converged
+    assert rotation_error_deg(res.T_target_source[:3, :3], R) < 1.0
+
+
+def test_fine_levels_finish_a_pose_on_a_partial_cluttered_target():
+    """Started 3 degrees off on a target with 30% missing and 50% outliers (density-filtered),
+    the robust symmetric point-to-plane passes (4, 2, 1 x 1 cm grids) land within 0.5 degrees
+    and 5 mm, and stop by their step test."""
+    from nrsfm_ros.core.registration.globalsearch import density_inliers
+    from nrsfm_ros.core.registration.refine import fine_levels
+    rng = np.random.default_rng(4)
+    R = Rotation.from_rotvec(np.radians(50) * np.array([1.0, -0.4, 0.5]) / 1.17).as_matrix()
+    src, tgt = _hard_pair(lambda g: _sheet(12000, g), R, rng)
+    tgt = tgt[density_inliers(tgt)]
+    T0 = np.eye(4)
+    T0[:3, :3] = Rotation.from_rotvec(np.radians(3) * np.array([0, 0, 1.0])).as_matrix() @ R
+    T0[:3, 3] = [0.21, -0.1, 0.06]
+    T, it, converged = fine_levels(src, tgt, T0, 0.01, iterations=15)
+    assert rotation_error_deg(T[:3, :3], R) < 0.5
+    assert np.allclose(T[:3, 3], [0.2, -0.1, 0.05], atol=0.005)
+    assert converged and it < 45

@@ -51,6 +51,8 @@ class GlobalPose:
 
 AMBIGUOUS_DEG = 10.0
 AMBIGUOUS_RATIO = 0.9
+COARSE_ITERATIONS = 60
+FINE_ITERATIONS = 30
 
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -104,8 +106,34 @@ class DistanceField:
         return self.near[flat]
 
 
+def score_rotations(Rs: np.ndarray, Yc: np.ndarray, t: np.ndarray, field: DistanceField,
+                    delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each rotation of ``Rs`` (R, 3, 3) of the centred coarse source ``Yc``: the
+    translation after a truncated mean shift from ``t`` (R, 3) (4 steps, pairs within 3
+    ``delta``) and the truncated quadratic score sum(max(0, 1 - d^2 / delta^2))."""
+    P = np.einsum('rij,nj->rni', Rs, Yc)                  # (rotations, n, 3)
+    t = t.copy()
+    for _ in range(4):
+        Q = P + t[:, None]
+        d = field.nearest(Q) - Q
+        w = (d ** 2).sum(-1) < (3 * delta) ** 2
+        t += (d * w[..., None]).sum(1) / np.maximum(w.sum(1), 1)[:, None]
+    Q = P + t[:, None]
+    return t, np.clip(1 - ((field.nearest(Q) - Q) ** 2).sum(-1) / delta ** 2, 0, None).sum(1)
+
+
+def local_rotations(steps: tuple[float, ...] = (4.0, 8.0)) -> np.ndarray:
+    """The identity and rotations by each of ``steps`` degrees about 26 axes (the directions
+    to the neighbours of a cube cell): a local grid around a sample of SO(3)."""
+    ax = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                   if (i, j, k) != (0, 0, 0)], float)
+    ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+    vecs = np.vstack([np.zeros((1, 3)), *(np.radians(a) * ax for a in steps)])
+    return Rotation.from_rotvec(vecs).as_matrix()
+
+
 def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
-                candidates: int = 5, trim: float = 0.6) -> GlobalPose:
+                candidates: int = 8, trim: float = 0.6) -> GlobalPose:
     """Search SO(3) x R^3 for the pose that best explains ``target`` by ``source`` (both (N, 3),
     input units); see the module docstring.  ``trim``: fraction of pairs kept by the candidate
     refinement (below the expected overlap)."""
@@ -123,15 +151,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     field = DistanceField(X, 0.01 * diag, 0.3 * diag)
     Rs = so3_samples(rotations)
     cy = Y.mean(0)
-    P = np.einsum('rij,nj->rni', Rs, Y - cy)              # (rotations, n, 3)
-    t = np.tile(X.mean(0), (rotations, 1))
-    for _ in range(4):                                      # truncated mean shift of t
-        Q = P + t[:, None]
-        d = field.nearest(Q) - Q
-        w = (d ** 2).sum(-1) < (3 * delta) ** 2
-        t += (d * w[..., None]).sum(1) / np.maximum(w.sum(1), 1)[:, None]
-    Q = P + t[:, None]
-    score = np.clip(1 - ((field.nearest(Q) - Q) ** 2).sum(-1) / delta ** 2, 0, None).sum(1)
+    t, score = score_rotations(Rs, Y - cy, np.tile(X.mean(0), (rotations, 1)), field, delta)
     picked: list[int] = []
     for r in np.argsort(-score):                            # best first, 15 deg apart
         if all(np.arccos(np.clip((np.trace(Rs[r].T @ Rs[p]) - 1) / 2, -1, 1))
@@ -139,26 +159,48 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
             picked.append(int(r))
             if len(picked) == candidates:
                 break
-    # refine each on 1%-of-diagonal grids and rescore at a fine delta
+    # zoom in: each pick rescored at the rotations around it (a finer SO(3) grid, half the
+    # sample spacing) and replaced by the best of its neighbourhood, so that the ICP below
+    # starts a few degrees from its basin's bottom rather than up to the full sample gap
+    near = local_rotations()
+    Rz = np.einsum('kij,cjl->ckil', near, Rs[picked]).reshape(-1, 3, 3)
+    tz = np.repeat(t[picked], len(near), axis=0)
+    tz, sz = score_rotations(Rz, Y - cy, tz, field, delta)
+    bestz = sz.reshape(len(picked), len(near)).argmax(1) + np.arange(len(picked)) * len(near)
+    starts = [(Rz[b], tz[b]) for b in bestz]
+    # refine each on the two coarse grids (4 and 2 x 2% of the diagonal: few points, cheap
+    # iterations, so many of them), rescore at a fine delta (1% of the diagonal) on the 1% grid
     Xf = voxel_downsample(tgt, 0.01 * diag)
     Yf = voxel_downsample(src, 0.01 * diag)
     tree = cKDTree(Xf)
     levels = icp_levels(Yf, Xf, 'point_to_plane', 0.02 * diag, 0)   # shared by the candidates
-    best_T, scores = np.eye(4), np.zeros(len(picked))
-    poses = []
-    for c, r in enumerate(picked):
-        T0 = np.eye(4)
-        T0[:3, :3] = Rs[r]
-        T0[:3, 3] = t[r] - Rs[r] @ cy
-        T = icp_iterate(levels, T0, 'point_to_plane', 30, 1e-6, np.inf, trim, 0.02 * diag)[0]
+
+    def score_of(T: np.ndarray) -> float:
         d = tree.query(Yf @ T[:3, :3].T + T[:3, 3])[0]
-        scores[c] = np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).sum()
+        return float(np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).sum())
+
+    scores = np.zeros(len(picked))
+    poses = []
+    for c, (Rc, tc) in enumerate(starts):
+        T0 = np.eye(4)
+        T0[:3, :3] = Rc
+        T0[:3, 3] = tc - Rc @ cy
+        T = icp_iterate(levels[:2], T0, 'point_to_plane', COARSE_ITERATIONS, 1e-6, np.inf,
+                        trim, 0.02 * diag)[0]
         poses.append(T)
-        if scores[c] >= scores.max():
-            best_T = T
-    best = float(scores.max())
-    ambiguous = any(scores[c] >= AMBIGUOUS_RATIO * best and
-                    rotation_angle_deg(poses[c][:3, :3], best_T[:3, :3]) > AMBIGUOUS_DEG
-                    for c in range(len(poses)))
+        scores[c] = score_of(T)
+    # the best and the best at another pose (> AMBIGUOUS_DEG away) also on the fine grid
+    order = np.argsort(-scores)
+    top = [int(order[0])]
+    top += [int(c) for c in order[1:] if rotation_angle_deg(
+        poses[c][:3, :3], poses[top[0]][:3, :3]) > AMBIGUOUS_DEG][:1]
+    for c in top:
+        poses[c] = icp_iterate(levels[2:], poses[c], 'point_to_plane', FINE_ITERATIONS, 1e-6,
+                               np.inf, trim, 0.02 * diag)[0]
+        scores[c] = score_of(poses[c])
+    top.sort(key=lambda c: -scores[c])
+    best_T, best = poses[top[0]], float(scores[top[0]])
+    ambiguous = len(top) > 1 and scores[top[1]] >= AMBIGUOUS_RATIO * best and \
+        rotation_angle_deg(poses[top[1]][:3, :3], best_T[:3, :3]) > AMBIGUOUS_DEG
     return GlobalPose(T_target_source=best_T, score=best, candidate_scores=scores,
                       target_inliers=keep_t, ambiguous=bool(ambiguous))

