@@ -203,8 +203,13 @@ def cluster_states(shapes: np.ndarray, distinct: float) -> tuple[np.ndarray, np.
 
 
 def object_shapes(res: NRSfMResult) -> np.ndarray:
-    """A batch result's shapes in its object frame, image units: S_f R_f scale_f (F, P, 3)."""
-    return np.einsum('fpi,fij->fpj', res.S * res.scale[:, None, None], res.R)
+    """A batch result's shapes in its object frame, image units: S_f R_f scale_f (F, P, 3),
+    with R_f made proper (R_f diag(1, 1, det R_f): a solver may return a depth-flipped S_f
+    with an improper R_f), so that each is a rotation of the camera-frame shape S_f, whose depth
+    reflection it keeps."""
+    R = res.R.copy()
+    R[:, :, 2] *= np.sign(np.linalg.det(R))[:, None]
+    return np.einsum('fpi,fij->fpj', res.S * res.scale[:, None, None], R)
 
 
 class DynamicShapePrior:

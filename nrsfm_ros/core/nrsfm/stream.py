@@ -42,7 +42,7 @@ import numpy as np
 
 from .dspr import DynamicShapePrior, object_shapes
 from .factorization import low_rank, rigid
-from .perspective import perspective_solve
+from .perspective import RATIO_RANGE, perspective_solve
 from .result import NRSfMResult
 
 MODES = ('window', 'online', 'batch', 'dspr')
@@ -132,6 +132,8 @@ class StreamNRSfM:
         self._flip = np.ones(3)                       # reflection of the last _emit
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
         self.prior: DynamicShapePrior | None = None   # dspr: the dynamic shape prior
+        self._batch_perspective = False               # the last batch solve was perspective
+        self._prior_perspective = False
         self._prior_ids = np.empty(0, np.int64)
         self._new_ids: set[int] = set()
         self.dspr_seconds: list[float] = []           # dspr: per-frame solve time after the prior
@@ -255,11 +257,13 @@ class StreamNRSfM:
     def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
         def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
             return self._solver(W, V, self.method, self.rank)
+        self._batch_perspective = False
         if self.projection != 'perspective' or self._intrinsics is None:
             return solve(W, V)
         weak = solve(W, V)
         res = perspective_solve(solve, W, V, *self._intrinsics, weak=weak)
         self.perspective_solves += res is not weak
+        self._batch_perspective = res is not weak
         return res
 
     def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
@@ -355,6 +359,7 @@ class StreamNRSfM:
                                      RECURRENCE_MIN_PX),
             prior_weight=self.dspr_prior_weight)
         self._prior_ids = ids
+        self._prior_perspective = self._batch_perspective
 
     def _step_dspr(self, fr: _Frame) -> StreamShape:
         """One frame through the prior; tracks not in the prior at their image neighbours'
@@ -364,7 +369,17 @@ class StreamNRSfM:
         col, have = _lookup(pids, fr.ids)
         uv = np.full((pids.size, 2), np.nan)
         vis = np.zeros(pids.size)
-        uv[col[have]] = fr.uv[have]
+        fuv = fr.uv
+        if self._prior_perspective and self._intrinsics is not None and self._published:
+            # the prior is in weak-perspective-equivalent coordinates: correct the tracks by
+            # the depth ratio 1 + z / f of the last published shape (perspective.py)
+            focal, c = self._intrinsics
+            last = self._published[-1]
+            lcol, lhave = _lookup(np.sort(last.ids), fr.ids)
+            z = np.zeros(fr.ids.size)
+            z[lhave] = last.X[np.argsort(last.ids)[lcol[lhave]], 2]
+            fuv = c + (fr.uv - c) * np.clip(1.0 + z / focal, *RATIO_RANGE)[:, None]
+        uv[col[have]] = fuv[have]
         vis[col[have]] = fr.vis[have]
         try:
             out = self.prior.step(uv, vis)
@@ -376,11 +391,11 @@ class StreamNRSfM:
         X[have] = out.X[col[have]]
         if (~have).any():
             self._new_ids.update(int(i) for i in fr.ids[~have])
-            X[~have, :2] = fr.uv[~have] - out.t
+            X[~have, :2] = fuv[~have] - out.t
             known = np.nonzero(have)[0]
             from scipy.spatial import cKDTree
             k = min(NEW_TRACK_NEIGHBOURS, known.size)
-            d, j = cKDTree(fr.uv[known]).query(fr.uv[~have], k=k)
+            d, j = cKDTree(fuv[known]).query(fuv[~have], k=k)
             d, j = d.reshape(-1, k), j.reshape(-1, k)
             w = 1.0 / np.maximum(d, 1e-6)
             X[~have, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
