@@ -162,10 +162,11 @@ class ReconstructorParams(Params):
                                      'dspr: RMS reprojection residual (px) under which a frame '
                                      'is a recurrence of a prior state (0: 1.5 x the first '
                                      "batch's residual, at least 0.75 px)")
-    dspr_distinct: float = rule(0.05, _non_negative,
+    dspr_distinct: float = rule(0.0, _non_negative,
                                 'dspr: shape distance (sine of the angle after Procrustes) '
                                 'above which a shape is a new state (merges the batch, grows '
-                                'the prior)')
+                                "the prior; 0: half the first batch's mean distance from its "
+                                'first shape)')
     dspr_prior_weight: float = rule(0.01, _positive,
                                     'dspr: weight of the closeness to the prior states against '
                                     'the data term (px^2) in the per-frame energy')

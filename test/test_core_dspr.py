@@ -128,9 +128,9 @@ def test_periodic_sequence_from_a_solved_batch_beats_static_and_compresses(perio
         runs[name] = (float(np.mean(e3d)), prior.compression_ratio, recurring)
     static = float(np.mean([frame_e3d(S[0], S[f]) for f in range(PERIOD, 100)]))
     e3d, ratio, recurring = runs['compressed']
-    assert e3d < 0.6 * static, (e3d, static)               # measured 0.0279 vs 0.0652
-    assert ratio >= 5.0 and recurring >= 30, runs           # measured 11.1x, 37 of 80
-    assert e3d <= 1.1 * runs['uncompressed'][0], runs       # measured 0.0279 vs 0.0258
+    assert e3d < 0.6 * static, (e3d, static)               # measured 0.0308 vs 0.0652
+    assert ratio >= 5.0 and recurring >= 25, runs           # measured 11.1x, 35 of 80
+    assert e3d <= 1.1 * runs['uncompressed'][0], runs       # measured 0.0308 vs 0.0299
 
 
 def test_new_frame_joins_the_prior_only_when_distinct(flag_states):

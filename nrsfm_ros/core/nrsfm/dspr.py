@@ -13,8 +13,9 @@ orthonormal rows, scale, translation; weights = visibility) batched over the sta
 * Otherwise a small per-frame energy started from the best state,
   E(X, c, a) = sum_p v_p ||w_p - s R2 X_p - t||^2 + prior_weight sum_p ||X_p - T_p||^2,
   T = sum_k a_k S_k over the ``blend`` best states, is minimised by alternation: the target's
-  coefficients a (and t) by linear least squares on the data for the current camera (so that a
-  start from the wrong state still reaches the right one), the shape X in closed form per point
+  coefficients a >= 0 (and t) by non-negative least squares on the data for the current camera
+  (a restart from a state that alone explains the data better, so that a start from the wrong
+  state still reaches the right one), the shape X in closed form per point
   for the fixed camera (its in-plane part is pulled to the data, its depth along the viewing
   direction is the target's), then the camera by Procrustes on X.  The shape joins the prior
   when its :func:`shape_distance` to every state exceeds ``distinct``.
@@ -27,6 +28,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import nnls
 
 from .result import NRSfMResult
 
@@ -321,26 +323,26 @@ class DynamicShapePrior:
         R2, s = fit.R2[start], float(fit.scale[start])
         lam = self.prior_weight
         Vs = float(v.sum())
-        ww0 = float(np.einsum('p,pi,pi->', v, uv, uv))
+        ubar = v @ uv / Vs
+        ww0 = float(np.einsum('p,pi,pi->', v, uv - ubar, uv - ubar))
         alpha = (cand == start).astype(np.float64)
         T = self.states[start]
         for _ in range(self.iterations):
-            # target: the blend of candidate states (and t) that best explains the data
-            # (normal equations from the weighted moments of q_k = s R2 S_k, unknowns a, t)
+            # target: the non-negative blend of candidate states (and t) that best explains
+            # the data, from the weighted moments of q_k = s R2 S_k (t eliminated by centring;
+            # non-negative: similar states would otherwise extrapolate to wild depths)
             q = s * (S @ R2.T)                                   # (m, P, 2)
+            qbar = np.einsum('p,kpi->ki', v, q) / Vs             # (m, 2)
             qv = q * v[None, :, None]
-            G = np.empty((m + 2, m + 2))
-            G[:m, :m] = np.einsum('kpi,lpi->kl', qv, q)
-            G[:m, m:] = qv.sum(axis=1)
-            G[m:, :m] = G[:m, m:].T
-            G[m:, m:] = Vs * np.eye(2)
-            G[np.arange(m), np.arange(m)] += 1e-9 * np.trace(G[:m, :m]) / m
-            rhs = np.concatenate([np.einsum('kpi,pi->k', qv, uv), v @ uv])
-            sol = np.linalg.solve(G, rhs)
-            alpha, t = sol[:m], sol[m:]
+            G = np.einsum('kpi,lpi->kl', qv, q) - Vs * qbar @ qbar.T
+            G[np.arange(m), np.arange(m)] += 1e-9 * max(np.trace(G), 1e-300) / m
+            rhs = np.einsum('kpi,pi->k', qv, uv) - Vs * qbar @ ubar
+            L = np.linalg.cholesky(G)
+            alpha = nnls(L.T, np.linalg.solve(L, rhs))[0]
+            t = ubar - alpha @ qbar
             # descent guard: a candidate fitted alone explaining the data better than this
             # blend (a start from the wrong state, its camera wrong too) restarts from it
-            r2 = max(ww0 - 2 * sol @ rhs + sol @ G @ sol, 0.0) / Vs
+            r2 = max(ww0 - 2 * alpha @ rhs + alpha @ G @ alpha, 0.0) / Vs
             j = int(np.argmin(fit.residual_px[cand]))
             if fit.residual_px[cand[j]] ** 2 < 0.999 * r2:
                 R2, s = fit.R2[cand[j]], float(fit.scale[cand[j]])

@@ -22,7 +22,8 @@ there.  Modes (the reconstructor's ``mode``):
   residual is under ``dspr_recurrence_px`` (0: 1.5 x the batch's RMS residual, at least
   0.75 px) is a recurrence of that state (stored as camera +
   state index), else a per-frame energy started from the best state gives the shape, which joins
-  the prior when farther than ``dspr_distinct`` from every state.  ``compression_ratio`` =
+  the prior when farther than ``dspr_distinct`` (0: half the batch's mean shape distance from
+  its first shape) from every state.  ``compression_ratio`` =
   frames / states.  Tracks new since the prior get the depth of their nearest prior tracks in
   the image (``dspr_new_tracks`` counts them).
 
@@ -40,7 +41,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .dspr import DynamicShapePrior, object_shapes
+from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import RATIO_RANGE, perspective_solve
 from .result import NRSfMResult
@@ -52,6 +53,8 @@ MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this
 NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
+DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
+DISTINCT_MIN = 1e-3       # first shape (its deformation range), at least DISTINCT_MIN
 
 
 @dataclass(frozen=True)
@@ -95,7 +98,7 @@ class StreamNRSfM:
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
                  solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
                  projection: str = 'weak', dspr_recurrence_px: float = 0.0,
-                 dspr_distinct: float = 0.05, dspr_prior_weight: float = 0.01) -> None:
+                 dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if projection not in PROJECTIONS:
@@ -351,10 +354,12 @@ class StreamNRSfM:
         if res.method == 'flat' or res.S.shape[0] < 2:
             return                              # nothing to learn from: stay in batch mode
         shapes = object_shapes(res) * flip
+        distinct = self.dspr_distinct or max(
+            DISTINCT_AUTO * float(np.mean(shape_distance(shapes[0], shapes))), DISTINCT_MIN)
         self.prior, _ = DynamicShapePrior.from_batch(
             replace(res, S=shapes, R=np.broadcast_to(np.eye(3), res.R.shape).copy(),
                     scale=np.ones(res.S.shape[0])),
-            distinct=self.dspr_distinct, recurrence_px=self.dspr_recurrence_px
+            distinct=distinct, recurrence_px=self.dspr_recurrence_px
             or RECURRENCE_AUTO * max(res.residual_px if np.isfinite(res.residual_px) else 0.0,
                                      RECURRENCE_MIN_PX),
             prior_weight=self.dspr_prior_weight)
