@@ -82,6 +82,36 @@ def test_dspr_publishes_one_shape_per_pushed_frame_after_the_prior_and_compresse
     assert np.median(s.dspr_seconds) < 0.05
 
 
+def test_dspr_survives_missing_and_occluded_tracks_without_losing_a_frame():
+    """After the prior: non-finite positions, new tracks (one without a position), a frame
+    with every track occluded (kept, weakly) and one with no position at all (the flat
+    fallback, recorded): every frame comes out; only points without a position and without
+    a prior are non-finite."""
+    d = dense_tracks('flag', frames=30, points=300, camera_motion_deg=30, period_frames=20,
+                     seed=1)
+    ids = np.arange(300)
+    s = StreamNRSfM(mode='dspr', batch_frames=10)
+    rng = np.random.default_rng(0)
+    got = []
+    for f in range(30):
+        uv, vis, fid = d['W'][2 * f:2 * f + 2].T.copy(), d['V'][f].copy(), ids
+        if f >= 12:
+            uv[rng.integers(0, 300, 20)] = np.nan
+            fid = np.concatenate([ids[:-5], 1000 + np.arange(5)])
+            uv[-2] = np.nan
+        if f == 20:
+            vis[:] = 0.0
+        if f == 22:
+            uv[:] = np.nan
+        for sh in s.push(fid, uv, vis):
+            got.append(sh.index)
+            if sh.index >= 12 and sh.index != 22:
+                assert np.isfinite(sh.X).all(axis=1).sum() >= 299, sh.index
+                assert np.isfinite(sh.X[sh.ids < 1000]).all()
+    assert got == list(range(30))
+    assert [i for i, _ in s.fallbacks] == [22] and s.dspr_new_tracks == 5
+
+
 def test_dspr_perspective_corrects_the_tracks_like_the_batch_it_was_built_from():
     """Rigid cloud at 2 m, f = 500 px: with intrinsics the prior comes from the
     perspective-refined batch (true depth reflection) and every later frame's tracks are

@@ -385,7 +385,8 @@ class StreamNRSfM:
             z[lhave] = last.X[np.argsort(last.ids)[lcol[lhave]], 2]
             fuv = c + (fr.uv - c) * np.clip(1.0 + z / focal, *RATIO_RANGE)[:, None]
         uv[col[have]] = fuv[have]
-        vis[col[have]] = fr.vis[have]
+        vis[col[have]] = np.maximum(fr.vis[have], 1e-3)    # occluded: weakly kept, as _tracks
+        vis[~np.isfinite(uv).all(axis=1)] = 0.0
         try:
             out = self.prior.step(uv, vis)
         except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
@@ -397,13 +398,17 @@ class StreamNRSfM:
         if (~have).any():
             self._new_ids.update(int(i) for i in fr.ids[~have])
             X[~have, :2] = fuv[~have] - out.t
-            known = np.nonzero(have)[0]
-            from scipy.spatial import cKDTree
-            k = min(NEW_TRACK_NEIGHBOURS, known.size)
-            d, j = cKDTree(fuv[known]).query(fuv[~have], k=k)
-            d, j = d.reshape(-1, k), j.reshape(-1, k)
-            w = 1.0 / np.maximum(d, 1e-6)
-            X[~have, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
+            X[~have, 2] = 0.0                             # the centroid's depth, unless ...
+            finite = np.isfinite(fuv).all(axis=1)
+            known = np.nonzero(have & finite)[0]
+            new = np.nonzero(~have & finite)[0]
+            if known.size and new.size:                   # ... the neighbours' depth
+                from scipy.spatial import cKDTree
+                k = min(NEW_TRACK_NEIGHBOURS, known.size)
+                d, j = cKDTree(fuv[known]).query(fuv[new], k=k)
+                d, j = d.reshape(-1, k), j.reshape(-1, k)
+                w = 1.0 / np.maximum(d, 1e-6)
+                X[new, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
         return StreamShape(fr.index, fr.ids, X, out.t, out.residual_px)
 
     # ------------------------------------------------------------------ online
@@ -455,7 +460,8 @@ class StreamNRSfM:
 
 def _flat_shape(fr: _Frame) -> StreamShape:
     """The frame's tracks at their centroid's depth (no depth is observable from them)."""
-    t = fr.uv.mean(axis=0)
+    ok = np.isfinite(fr.uv).all(axis=1)
+    t = fr.uv[ok].mean(axis=0) if ok.any() else np.zeros(2)
     return StreamShape(fr.index, fr.ids, np.concatenate([fr.uv - t, np.zeros((fr.ids.size, 1))],
                                                         axis=1), t, 0.0)
 
