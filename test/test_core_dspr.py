@@ -110,6 +110,24 @@ def test_recurrence_detected_with_the_right_states_on_a_periodic_sequence(period
     assert len(prior.states) == PERIOD // 2 + 1 and prior.recurrences == 100 - PERIOD
 
 
+def test_recurrence_survives_noise_and_occlusion(periodic):
+    """The same with 0.3 px track noise and a third of the tracks occluded (garbage positions,
+    visibility 0) in every frame: still every frame recurs, with the right state."""
+    S_world = periodic['S_world'] * PX
+    states, labels = cluster_states(S_world[:PERIOD], distinct=1e-6)
+    prior = DynamicShapePrior(states, frames=PERIOD, recurrence_px=0.6)
+    W, S = periodic['W'], periodic['S']
+    rng = np.random.default_rng(7)
+    P = W.shape[1]
+    for f in range(PERIOD, 100):
+        uv = W[2 * f:2 * f + 2].T + rng.normal(size=(P, 2)) * 0.3
+        vis = (rng.random(P) > 0.33).astype(float)
+        uv[vis == 0] = rng.normal(size=((vis == 0).sum(), 2)) * 300
+        out = prior.step(uv, vis)
+        assert out.recurring and out.state == labels[f % PERIOD], f
+        assert frame_e3d(out.X, S[f]) < 2e-3
+
+
 def test_periodic_sequence_from_a_solved_batch_beats_static_and_compresses(periodic):
     """The prior from the first period solved by the batch solver (stream's default, here
     'auto' -> planar), then frame by frame: e3D well under the static oracle (ground-truth
