@@ -37,7 +37,7 @@ from .refine import icp_iterate, icp_levels, voxel_downsample
 
 @dataclass(frozen=True)
 class GlobalPose:
-    """Best pose T_target_source, its fine score (source points explained, soft count), the
+    """Best pose T_target_source, its fine score (the fraction of source points explained, soft count), the
     score of each refined candidate, the target's inlier mask from the density filter, and
     ``ambiguous``: a refined candidate at another pose (> ``AMBIGUOUS_DEG`` away) scores at
     least ``AMBIGUOUS_RATIO`` of the best (the data do not tell the poses apart)."""
@@ -51,7 +51,8 @@ class GlobalPose:
 
 AMBIGUOUS_DEG = 10.0
 AMBIGUOUS_RATIO = 0.9
-COARSE_ITERATIONS = 60
+COARSE_ITERATIONS = 30
+SCORE_POINTS = 3000       # source points that score a coarse candidate
 FINE_ITERATIONS = 30
 
 
@@ -148,7 +149,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     delta = 0.03 * diag
     X = voxel_downsample(tgt, 0.02 * diag)
     Y = voxel_downsample(src, 0.05 * diag)
-    field = DistanceField(X, 0.01 * diag, 0.3 * diag)
+    field = DistanceField(X, 0.01 * diag, 0.12 * diag)   # pad: beyond 3 delta nothing counts
     Rs = so3_samples(rotations)
     cy = Y.mean(0)
     t, score = score_rotations(Rs, Y - cy, np.tile(X.mean(0), (rotations, 1)), field, delta)
@@ -175,11 +176,14 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     tree = cKDTree(Xf)
     levels = icp_levels(Yf, Xf, 'point_to_plane', 0.02 * diag, 0)   # shared by the candidates
 
-    def score_of(T: np.ndarray) -> float:
-        d = tree.query(Yf @ T[:3, :3].T + T[:3, 3])[0]
-        return float(np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).sum())
+    Ys = Yf[np.linspace(0, len(Yf) - 1, min(len(Yf), SCORE_POINTS)).astype(np.intp)]
 
-    scores = np.zeros(len(picked))
+    def score_of(T: np.ndarray, Y: np.ndarray = Ys) -> float:
+        """Source points explained (soft count at 1% of the diagonal), per point of ``Y``."""
+        d = tree.query(Y @ T[:3, :3].T + T[:3, 3])[0]
+        return float(np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).mean())
+
+    scores = np.zeros(len(starts))
     poses = []
     for c, (Rc, tc) in enumerate(starts):
         T0 = np.eye(4)
@@ -197,7 +201,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     for c in top:
         poses[c] = icp_iterate(levels[2:], poses[c], 'point_to_plane', FINE_ITERATIONS, 1e-6,
                                np.inf, trim, 0.02 * diag)[0]
-        scores[c] = score_of(poses[c])
+        scores[c] = score_of(poses[c], Yf)
     top.sort(key=lambda c: -scores[c])
     best_T, best = poses[top[0]], float(scores[top[0]])
     ambiguous = len(top) > 1 and scores[top[1]] >= AMBIGUOUS_RATIO * best and \

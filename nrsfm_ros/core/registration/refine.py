@@ -18,7 +18,9 @@ def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None,
     for these point indices."""
     tree = cKDTree(X) if tree is None else tree
     k = min(k, X.shape[0])
-    _, idx = tree.query(X if at is None else X[at], k=k, workers=-1)
+    Q = X if at is None else X[at]
+    # threads cost more than they save on the few points an ICP iteration asks for
+    _, idx = tree.query(Q, k=k, workers=-1 if len(Q) > 4000 else 1)
     nb = X[idx] - X[idx].mean(axis=1, keepdims=True)
     cov = np.einsum('nki,nkj->nij', nb, nb)
     return np.linalg.eigh(cov)[1][:, :, 0]
