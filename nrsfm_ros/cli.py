@@ -68,6 +68,9 @@ def _parser() -> argparse.ArgumentParser:
                    help='a textured disc sweeps across in front of the surface')
     s.add_argument('--distance', type=float, default=4.0, metavar='M',
                    help='camera distance to the surface, metres (default 4)')
+    s.add_argument('--periodic', type=int, default=0, metavar='N',
+                   help='the deformation repeats every N frames (forwards and back; a '
+                   'heartbeat- or breathing-like motion) while the camera moves; 0: off')
     s.add_argument('--stride', type=int, default=2, help='ground-truth track sampling')
     s.add_argument('--out', required=True, help='output bag folder (the .npz goes beside it)')
 
@@ -155,7 +158,12 @@ def _parser() -> argparse.ArgumentParser:
                     '(coherent depth fields: occluded tracks filled from visible neighbours) or '
                     'hdsm (lifted high-dimensional model; --rank is its dimension D, default 9) '
                     'or va (Garg variational: cdf + spatial Huber-TV on the image grid) or '
-                    'planar (planar rest shape deforming out of its plane: cloth, paper, flag)')
+                    'planar (planar rest shape deforming out of its plane: cloth, paper, flag) '
+                    'or dspr (dynamic shape prior: the first --batch-frames frames solved by '
+                    'auto, then frame by frame; recurring states stored as camera + index)')
+    rc.add_argument('--batch-frames', type=int, default=None, metavar='N',
+                    help='dspr: frames of the initial batch that builds the prior (default '
+                    'min(60, F/2))')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6); hdsm: lifted dimension D '
@@ -269,8 +277,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
     cfg = SynthConfig(surface=args.surface, width=w, height=h, frames=args.frames, fps=args.fps,
                       seed=args.seed, noise=args.noise, stride=args.stride,
                       camera_motion_deg=args.camera_motion, amplitude=args.amplitude,
-                      occluder=args.occluder, distance=args.distance)
+                      occluder=args.occluder, distance=args.distance,
+                      period_frames=args.periodic)
     flags = {'camera_motion_deg': '--camera-motion', 'amplitude': '--amplitude',
+             'period_frames': '--periodic',
              'distance': '--distance', 'noise': '--noise', 'frames': '--frames', 'fps': '--fps',
              'stride': '--stride', 'width x height ': '--size'}
     try:
@@ -781,8 +791,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     d = _load_npz(path)
     if 'W' not in d.files:
         raise CliError(f'{path}: no array named W (keys: {d.files})')
+    if args.method == 'dspr':
+        return _reconstruct_dspr(d, args)
+    if args.batch_frames is not None:
+        raise CliError(f'--batch-frames applies to --method dspr, not {args.method}')
     if args.method not in METHODS:
-        raise CliError(f'--method {args.method!r}: expected one of {sorted(METHODS)}')
+        raise CliError(f'--method {args.method!r}: expected one of '
+                       f'{sorted([*METHODS, "dspr"])}')
     if args.method in ('rigid', 'cdf', 'va', 'planar'):
         if args.rank is not None:
             raise CliError(f'--rank does not apply to --method {args.method}')
@@ -805,6 +820,37 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     print(f'wrote {args.out}: S {res.S.shape} ({res.method}, rank {res.rank}, '
           f'{res.camera_model} cameras, residual {res.residual_px:.3g} px{extra}, '
           f'{res.seconds:.2f} s)')
+    return 0
+
+
+def _reconstruct_dspr(d: Any, args: argparse.Namespace) -> int:
+    """The reconstructor's dspr stream over the tracks, frame by frame (S NaN where a frame
+    has no shape for a track)."""
+    import time
+
+    from .core.nrsfm.result import check_tracks
+    from .core.nrsfm.stream import StreamNRSfM
+    for flag, key in (('--rank', 'rank'), ('--camera-model', 'camera_model'),
+                      ('--smooth', 'smooth')):
+        if getattr(args, key) is not None:
+            raise CliError(f'{flag} does not apply to --method dspr')
+    W, V = check_tracks(d['W'], d['V'] if 'V' in d.files else None)
+    F, P = V.shape
+    batch = args.batch_frames if args.batch_frames is not None else min(60, max(3, F // 2))
+    if not 3 <= batch <= F:
+        raise CliError(f'--batch-frames {batch}: expected 3..{F} (the sequence has {F} frames)')
+    t0 = time.perf_counter()
+    stream = StreamNRSfM(mode='dspr', batch_frames=batch)
+    ids = np.arange(P)
+    S = np.full((F, P, 3), np.nan)
+    t = np.zeros((F, 2))
+    shapes = [sh for f in range(F) for sh in stream.push(ids, W[2 * f:2 * f + 2].T, V[f])]
+    for sh in shapes + stream.flush():
+        S[sh.index, sh.ids] = sh.X
+        t[sh.index] = sh.t
+    np.savez_compressed(args.out, S=S, t=t, compression=stream.compression_ratio)
+    print(f'wrote {args.out}: S {S.shape} (dspr, prior from {batch} frames, compression '
+          f'{stream.compression_ratio:.1f}x, {time.perf_counter() - t0:.2f} s)')
     return 0
 
 

@@ -51,6 +51,8 @@ class ProcessReport:
     timing: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
     # seconds outside the stages: reading the bag, deserializing inputs, writing outputs
     io_s: dict[str, float] = field(default_factory=dict)
+    # stage -> its method-specific values (Processor.status, as on /diagnostics)
+    status: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {'inputs': self.inputs, 'outputs': self.outputs, 'failures': self.failures,
@@ -58,7 +60,8 @@ class ProcessReport:
                 'seconds': round(self.seconds, 3), 'bag_duration_s': self.bag_duration_s,
                 'realtime_factor': round(self.bag_duration_s / self.seconds, 2)
                 if self.seconds else None,
-                'timing': self.timing, 'io_s': {k: round(v, 3) for k, v in self.io_s.items()}}
+                'timing': self.timing, 'io_s': {k: round(v, 3) for k, v in self.io_s.items()},
+                'status': self.status}
 
 
 def make_processors(stages: Sequence[str], params: Mapping[str, Params] | None = None,
@@ -162,6 +165,7 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
     report.seconds = time.perf_counter() - t0
     report.timing = {name: {kind: t.summary() for kind, t in proc.stats.timing.items()}
                      for name, proc in procs.items()}
+    report.status = {name: st for name, proc in procs.items() if (st := proc.status())}
     return report
 
 

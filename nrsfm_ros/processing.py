@@ -163,6 +163,10 @@ class Processor:
         """After an unexpected exception in ``on_<kind>``: put the state back in order
         (subclasses whose state a half-done update could corrupt override this)."""
 
+    def status(self) -> dict[str, str]:
+        """Method-specific values for /diagnostics and the process report (none here)."""
+        return {}
+
     def handle(self, kind: str, msg: Any) -> list[Output]:
         """Dispatch ``msg`` of input ``kind``; counts, times and records errors.
 
@@ -304,7 +308,9 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
     """The reconstructor's streaming NRSfM for a parameter set (``overrides`` win)."""
     kw = dict(mode=params.mode, window=params.window, rank=params.rank,
               iterations=params.iterations, method=params.method,
-              batch_frames=params.batch_frames, projection=params.projection)
+              batch_frames=params.batch_frames, projection=params.projection,
+              dspr_recurrence_px=params.dspr_recurrence_px, dspr_distinct=params.dspr_distinct,
+              dspr_prior_weight=params.dspr_prior_weight)
     return StreamNRSfM(**{**kw, **overrides})
 
 
@@ -335,6 +341,16 @@ class ReconstructorProcessor(Processor):
     def recover(self, kind: str, err: Exception) -> None:
         if kind == 'tracks':          # a half-done push: start the stream again
             self._reset()
+
+    def status(self) -> dict[str, str]:
+        """Batch solves won by the perspective model; dspr: compression (frames / stored
+        states) and tracks new since the prior."""
+        s = self.stream
+        out = {'perspective_solves': str(s.perspective_solves)}
+        if self.params.mode == 'dspr':
+            out['compression_ratio'] = f'{s.compression_ratio:.2f}'
+            out['dspr_new_tracks'] = str(s.dspr_new_tracks)
+        return out
 
     def on_camera_info(self, msg: Any) -> list[Output]:
         self.K = img_io.camera_info_K(msg)

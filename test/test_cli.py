@@ -206,3 +206,34 @@ def test_reconstruct_every_method_on_tracks_with_visibility(tmp_path, capsys):
         r = np.load(out)
         assert r['S'].shape == S.shape and np.isfinite(r['S']).all(), method
         assert f'({method}, rank' in capsys.readouterr().out
+
+
+def test_reconstruct_dspr_and_synth_periodic(tmp_path, capsys):
+    """`synth --periodic N` repeats the deformation; `reconstruct --method dspr` on its tracks
+    compresses the recurring states and beats the static baseline computed here."""
+    from nrsfm_ros.core.metrics import e3d_frobenius
+    out = tmp_path / 'p'
+    assert main(['synth', '--size', '96x72', '--frames', '60', '--periodic', '20',
+                 '--camera-motion', '30', '--out', str(out)]) == 0
+    gt = np.load(tmp_path / 'p.npz')
+    S_w = gt['S_world']
+    assert np.abs(S_w[0] - S_w[20]).max() < 1e-9 and np.abs(S_w[0] - S_w[10]).max() > 1e-3
+    np.savez(tmp_path / 'tracks.npz', W=gt['W'], V=np.maximum(gt['V'], 1e-3))
+    capsys.readouterr()
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'dspr',
+                 '--batch-frames', '20', '--out', str(tmp_path / 'd.npz')]) == 0
+    assert '(dspr, prior from 20 frames, compression' in capsys.readouterr().out
+    r = np.load(tmp_path / 'd.npz')
+    assert r['S'].shape == gt['S'].shape and np.isfinite(r['S']).all()
+    assert float(r['compression']) > 1.5
+    static = e3d_frobenius(np.repeat(gt['S'][:1], 60, axis=0), gt['S'], 'frame', scale=True)
+    # measured: 0.045 against static 0.067 (planar on the whole sequence 0.049)
+    assert e3d_frobenius(r['S'], gt['S'], 'frame', scale=True) < 0.8 * static
+    for bad, text in ((['--method', 'dspr', '--batch-frames', '2'], '--batch-frames 2'),
+                      (['--method', 'dspr', '--rank', '3'], '--rank does not apply'),
+                      (['--method', 'bmm', '--batch-frames', '10'], 'applies to --method dspr')):
+        assert main(['reconstruct', str(tmp_path / 'tracks.npz'), *bad, '--out',
+                     str(tmp_path / 'x.npz')]) == 2
+        assert text in capsys.readouterr().err
+    assert main(['synth', '--periodic', '2', '--out', str(tmp_path / 'q')]) == 2
+    assert '--periodic' in capsys.readouterr().err

@@ -45,6 +45,8 @@ def test_offline_process_bag(sample):
     for topic in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
                   'scene_flow/points'):
         assert report['outputs'][topic] == CFG.frames
+    # the one batch (30 frames, flushed) is refined for the perspective camera of CameraInfo
+    assert report['status']['reconstructor'] == {'perspective_solves': '1'}
     s = summarise(root / 'offline', seq, root / 'offline_render')
     assert_beats_baselines(s, seq)
 
@@ -62,3 +64,29 @@ def test_live_graph(sample):
     assert_beats_baselines(s, seq)
     assert set(s['latency_ms']) == {'tracker', 'reconstructor', 'registrar', 'scene_flow'}
     assert (root / 'render' / 'points_000.ply').exists()
+
+
+def test_reconstructor_dspr_parameters_and_status_reach_the_report(sample, tmp_path):
+    """`mode: dspr` with its parameters from a params file: the processor's stream gets them,
+    and the process report (like /diagnostics) carries the compression and perspective counts."""
+    from nrsfm_ros.params import ReconstructorParams
+    from nrsfm_ros.processing import ReconstructorProcessor, make_stream
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    s = make_stream(ReconstructorParams(mode='dspr', batch_frames=10, dspr_recurrence_px=0.7,
+                                        dspr_distinct=0.02, dspr_prior_weight=0.5))
+    assert (s.mode, s.batch_frames, s.dspr_recurrence_px, s.dspr_distinct,
+            s.dspr_prior_weight) == ('dspr', 10, 0.7, 0.02, 0.5)
+    assert 'compression_ratio' not in ReconstructorProcessor(RosbagsFactory()).status()
+    root, seq = sample
+    params = tmp_path / 'params'
+    params.mkdir()
+    (params / 'reconstructor.yaml').write_text(
+        'reconstructor:\n  ros__parameters:\n    mode: dspr\n    batch_frames: 12\n')
+    assert main(['process', str(root / 'in'), '--out', str(tmp_path / 'out'), '--pipeline',
+                 'tracker,reconstructor', '--params', str(params), '--report',
+                 str(tmp_path / 'r.json'), '--no-progress']) == 0
+    report = json.loads((tmp_path / 'r.json').read_text())
+    assert report['outputs']['nrsfm/points'] == CFG.frames
+    st = report['status']['reconstructor']
+    assert float(st['compression_ratio']) >= 1.0 and int(st['dspr_new_tracks']) >= 0
+    assert int(st['perspective_solves']) in (0, 1)   # the first batch only, with CameraInfo

@@ -199,7 +199,8 @@ class ProcessorNode(Node):
         stamp = self.get_clock().now().nanoseconds
         self.diag_pub.publish(diagnostics_msg(self.factory, self.get_name(),
                                               self.processor.stats, stamp,
-                                              {'queued': str(len(self.queue))}))
+                                              {'queued': str(len(self.queue)),
+                                               **self.processor.status()}))
 
     def destroy_node(self) -> None:
         self.queue.close()
