@@ -52,6 +52,8 @@ class GlobalPose:
 AMBIGUOUS_DEG = 10.0
 AMBIGUOUS_RATIO = 0.9
 COARSE_ITERATIONS = 30
+MID_CANDIDATES = 5        # refined on the middle grid (2 x 2% of the diagonal)
+PICK_DEG = 30.0          # the coarse picks at least this far apart
 SCORE_POINTS = 3000       # source points that score a coarse candidate
 FINE_ITERATIONS = 30
 
@@ -124,17 +126,17 @@ def score_rotations(Rs: np.ndarray, Yc: np.ndarray, t: np.ndarray, field: Distan
 
 
 def local_rotations(steps: tuple[float, ...] = (4.0, 8.0)) -> np.ndarray:
-    """The identity and rotations by each of ``steps`` degrees about 26 axes (the directions
-    to the neighbours of a cube cell): a local grid around a sample of SO(3)."""
+    """The identity and rotations by each of ``steps`` degrees about 14 axes (the directions
+    to the faces and corners of a cube): a local grid around a sample of SO(3)."""
     ax = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
-                   if (i, j, k) != (0, 0, 0)], float)
+                   if abs(i) + abs(j) + abs(k) in (1, 3)], float)
     ax /= np.linalg.norm(ax, axis=1, keepdims=True)
     vecs = np.vstack([np.zeros((1, 3)), *(np.radians(a) * ax for a in steps)])
     return Rotation.from_rotvec(vecs).as_matrix()
 
 
 def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
-                candidates: int = 8, trim: float = 0.6) -> GlobalPose:
+                candidates: int = 12, trim: float = 0.6) -> GlobalPose:
     """Search SO(3) x R^3 for the pose that best explains ``target`` by ``source`` (both (N, 3),
     input units); see the module docstring.  ``trim``: fraction of pairs kept by the candidate
     refinement (below the expected overlap)."""
@@ -156,7 +158,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     picked: list[int] = []
     for r in np.argsort(-score):                            # best first, 15 deg apart
         if all(np.arccos(np.clip((np.trace(Rs[r].T @ Rs[p]) - 1) / 2, -1, 1))
-               > np.radians(15) for p in picked):
+               > np.radians(PICK_DEG) for p in picked):
             picked.append(int(r))
             if len(picked) == candidates:
                 break
@@ -189,10 +191,14 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
         T0 = np.eye(4)
         T0[:3, :3] = Rc
         T0[:3, 3] = tc - Rc @ cy
-        T = icp_iterate(levels[:2], T0, 'point_to_plane', COARSE_ITERATIONS, 1e-6, np.inf,
+        T = icp_iterate(levels[:1], T0, 'point_to_plane', COARSE_ITERATIONS, 1e-6, np.inf,
                         trim, 0.02 * diag)[0]
         poses.append(T)
         scores[c] = score_of(T)
+    for c in np.argsort(-scores)[:MID_CANDIDATES]:          # the best few on the middle grid
+        poses[c] = icp_iterate(levels[1:2], poses[c], 'point_to_plane', COARSE_ITERATIONS,
+                               1e-6, np.inf, trim, 0.02 * diag)[0]
+        scores[c] = score_of(poses[c])
     # the best and the best at another pose (> AMBIGUOUS_DEG away) also on the fine grid
     order = np.argsort(-scores)
     top = [int(order[0])]

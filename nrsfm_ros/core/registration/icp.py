@@ -14,6 +14,7 @@ from .refine import (estimate_normals, fine_levels, icp_iterate, icp_levels,  # 
                      voxel_downsample)
 
 FINE_VOXEL = 0.01      # init='global', voxel 0: the fine pass's cell edge, of the target diagonal
+FINE_FACTORS = (4.0, 2.0, 1.0)   # init='global': the fine passes' grids, x the cell edge
 ICP_METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
                'icp-point-to-plane': 'point_to_plane'}
 
@@ -70,7 +71,8 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     if isinstance(init, str) and init == 'global':
         # finish the start with the robust symmetric passes, coarse to fine (refine.fine_levels)
         fv = voxel if voxel > 0 else FINE_VOXEL * diagonal(dst)
-        T, it, converged = fine_levels(src, dst, T, fv, iterations=min(max_iterations, 15))
+        T, it, converged = fine_levels(src, dst, T, fv, FINE_FACTORS,
+                                       min(max_iterations, 15))
         tree = cKDTree(full_dst) if target_tree is None else target_tree
         return rigid_result(src, T, tree, threshold, f'icp-{method}', it,
                             converged and not ambiguous, t0)

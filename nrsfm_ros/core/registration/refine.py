@@ -187,6 +187,9 @@ def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: floa
     return T, it, converged
 
 
+SCALE = 0.25
+
+
 def fine_levels(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float,
                 factors: tuple[float, ...] = (4.0, 2.0, 1.0), iterations: int = 15
                 ) -> tuple[np.ndarray, int, bool]:
@@ -196,6 +199,6 @@ def fine_levels(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: fl
     0.24 s).  (T, total iterations, converged at the last level)."""
     total, converged = 0, False
     for f in factors:
-        T, it, converged = fine_pass(source, target, T, f * voxel, 0.5 * f * voxel, iterations)
+        T, it, converged = fine_pass(source, target, T, f * voxel, SCALE * f * voxel, iterations)
         total += it
     return T, total, converged
