@@ -343,10 +343,13 @@ class ReconstructorProcessor(Processor):
             self._reset()
 
     def status(self) -> dict[str, str]:
-        """Batch solves won by the perspective model; dspr: compression (frames / stored
-        states) and tracks new since the prior."""
+        """Batch solves won by the perspective model, the last batch solve's method (what
+        ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
+        prior."""
         s = self.stream
         out = {'perspective_solves': str(s.perspective_solves)}
+        if s.last_method:
+            out['last_method'] = s.last_method
         if self.params.mode == 'dspr':
             out['compression_ratio'] = f'{s.compression_ratio:.2f}'
             out['dspr_new_tracks'] = str(s.dspr_new_tracks)

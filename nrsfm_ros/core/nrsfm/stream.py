@@ -106,6 +106,7 @@ class StreamNRSfM:
         self.projection = projection
         self._intrinsics: tuple[float, np.ndarray] | None = None
         self.perspective_solves = 0      # batch solves where the perspective model won
+        self.last_method = ''            # the method of the last batch solve (auto's choice)
         for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
                                                                         1),
                             ('batch_frames', batch_frames, 3)):
@@ -262,11 +263,13 @@ class StreamNRSfM:
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
         if self.projection != 'perspective' or self._intrinsics is None:
-            return solve(W, V)
-        weak = solve(W, V)
-        res = perspective_solve(solve, W, V, *self._intrinsics, weak=weak)
-        self.perspective_solves += res is not weak
-        self._batch_perspective = res is not weak
+            res = solve(W, V)
+        else:
+            weak = solve(W, V)
+            res = perspective_solve(solve, W, V, *self._intrinsics, weak=weak)
+            self.perspective_solves += res is not weak
+            self._batch_perspective = res is not weak
+        self.last_method = res.method
         return res
 
     def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
