@@ -243,8 +243,17 @@ class SceneFlowParams(Params):
                        'multi-frame scene flow (piecewise rigid) from camera/image_raw + '
                        'camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info')
     frame: str = rule('object', _one_of('object', 'camera'),
-                      'nrsfm: object (camera ego-motion removed) or camera (raw difference); '
-                      'msf publishes the camera frame (its camera pose is unknown)')
+                      'nrsfm: object (camera ego-motion, estimated from the stream, removed) '
+                      'or camera (raw difference); both in the previous camera\'s axes; msf '
+                      'publishes the camera frame (its camera pose is unknown)')
+    window: int = rule(10, _at_least(2), 'nrsfm object frame: clouds (the current one '
+                       'included) the ego-motion is estimated over')
+    iterations: int = rule(8, _at_least(0), 'nrsfm object frame: re-weightings of the '
+                           'ego-motion fit (weights from each track\'s spread) on a cold start')
+    warm_iterations: int = rule(3, _at_least(0), 'nrsfm object frame: re-weightings when '
+                                'warm-started from the previous window\'s weights')
+    softness: float = rule(0.1, _positive, 'nrsfm object frame: track weight 1 / (spread^2 + '
+                           '(softness * median spread)^2)')
     stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')
     segments: int = rule(300, _at_least(1), 'msf: SLIC segments of the reference frame')
     sync_tolerance_s: float = rule(0.005, _non_negative, 'msf: image and depth stamps closer '

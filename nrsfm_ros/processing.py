@@ -571,7 +571,10 @@ def transform_matrix(msg: Any) -> np.ndarray:
 class SceneFlowProcessor(Processor):
     """scene_flow/points (x, y, z, vx, vy, vz in m/s, track_id) + arrow markers.
 
-    ``method='nrsfm'``: from consecutive nrsfm/points clouds (matched by track id).
+    ``method='nrsfm'``: from consecutive nrsfm/points clouds (matched by track id), the
+    velocity in the previous camera's axes (core.sceneflow.definition); ``frame='object'``
+    removes the camera's ego-motion estimated over the last ``window`` clouds
+    (core.sceneflow.nrsfm_flow.object_poses, warm-started from the previous window's weights).
     ``method='msf'``: RGB-D MSF (core.sceneflow.msf) from camera/image_raw,
     camera/depth/image_raw and camera/camera_info, image and depth paired by stamp; the points
     are the surface pixels of the first frame (every ``stride``-th, track_id = y * width + x)
@@ -584,6 +587,8 @@ class SceneFlowProcessor(Processor):
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
         self._prev: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque()
+        self._weights: tuple[np.ndarray, np.ndarray] | None = None
         self._reset_msf()
 
     def _reset_msf(self) -> None:
@@ -594,10 +599,12 @@ class SceneFlowProcessor(Processor):
 
     def set_params(self, params: Params) -> None:
         changed = any(getattr(params, k) != getattr(self.params, k)
-                      for k in ('method', 'stride', 'segments'))
+                      for k in ('method', 'stride', 'segments', 'frame'))
         super().set_params(params)
         if changed:
             self._prev = None
+            self._history.clear()
+            self._weights = None
             self._reset_msf()
 
     # ---------------------------------------------------------------- msf (RGB-D)
@@ -681,15 +688,34 @@ class SceneFlowProcessor(Processor):
         X, ids = X[ok], ids[ok]
         stamp = stamp_ns(msg.header)
         prev = self._prev
+        if np.unique(ids).size != ids.size:
+            raise MessageError('track_id', f'{ids.size - np.unique(ids).size} duplicated',
+                               'track ids of a cloud must be unique')
+        p = self.params
         if prev is None or stamp <= prev[0]:
             # first cloud (or time went backwards): zero flow, so every input has an output
             v = np.zeros_like(X)
             pts, out_ids = X, ids
+            self._history.clear()
+            self._weights = None
         else:
-            sf = scene_flow(prev[1], prev[2], X, ids, (stamp - prev[0]) * 1e-9,
-                            frame=self.params.frame)
+            dt = (stamp - prev[0]) * 1e-9
+            if p.frame == 'camera':
+                sf = scene_flow(prev[1], prev[2], X, ids, dt, frame='camera')
+            else:
+                from .core.sceneflow.nrsfm_flow import motion_between, object_poses, pair_flow
+                window = [*self._history, (X, ids)]
+                R, t, self._weights = object_poses(
+                    window, iterations=p.iterations if self._weights is None else
+                    p.warm_iterations, softness=p.softness, prior=self._weights,
+                    return_weights=True)
+                sf = pair_flow((prev[1], prev[2].astype(np.int64)), (X, ids.astype(np.int64)),
+                               motion_between(R, t, len(window) - 2, len(window) - 1), dt)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids
         self._prev = (stamp, X, ids)
+        self._history.append((X, ids))
+        while len(self._history) > max(p.window, 2) - 1:
+            self._history.popleft()
         return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id))
 
     def _outputs(self, pts: np.ndarray, v: np.ndarray, ids: np.ndarray, stamp: int,

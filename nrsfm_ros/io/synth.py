@@ -459,11 +459,12 @@ def _vertex_normals(X: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 
 def scene_flow_ground_truth(seq: SynthSequence, f: int) -> np.ndarray:
-    """True 3D velocity (P, 3) of the tracked points between frames f-1 and f, in camera f's
-    frame, with the camera's own motion removed (the NRSfM-Flow 'object' convention)."""
+    """True 3D velocity (P, 3, m/s) of the tracked points between frames f-1 and f in the
+    object frame of ``core.sceneflow.definition``: the camera's own motion removed, in the
+    axes of the earlier camera f-1, ``R_{f-1} (X_world_f - X_world_{f-1}) * fps``."""
     if not 1 <= f < seq.S.shape[0]:
         raise ValueError(f'f: expected 1..{seq.S.shape[0] - 1}, got {f}')
-    R = seq.T_camera_world[f, :3, :3]
+    R = seq.T_camera_world[f - 1, :3, :3]
     return (seq.S_world[f] - seq.S_world[f - 1]) @ R.T * seq.config.fps
 
 

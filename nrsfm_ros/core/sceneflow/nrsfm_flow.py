@@ -1,47 +1,206 @@
 """NRSfM-Flow style scene flow (METHODS §11.1): 3D motion per point between consecutive
-reconstructions, expressed in one frame (the current camera frame).
+reconstructions of one consistent stream, in the definition of :mod:`.definition`.
 
-``frame='object'`` removes the rigid part (camera ego-motion) by a Kabsch fit between the two
-clouds on their shared track ids, leaving the non-rigid motion; ``frame='camera'`` keeps the raw
-difference in the current camera frame.
+``frame='camera'``: ``X_b - X_a`` on the shared track ids (ego-motion included).
+
+``frame='object'``: the camera's ego-motion is *estimated* from the stream and removed.  A
+monocular stream cannot tell a camera moving round an object from the object moving rigidly,
+so the object frame needs a prior; we take the one that holds for anchored or mostly rigid
+objects: **the object frame is the frame in which the most rigid part of the surface stands
+still**.  :func:`object_poses` finds it over a window of clouds by a weighted generalised
+Procrustes fit (one pose per frame onto a common template) whose per-point weights come from
+each track's spread about its template position over the window, re-estimated a few times
+(IRLS): points that move least dominate the poses, deforming points get little weight and
+their motion is kept as flow.  A Kabsch fit between just two consecutive clouds (the old
+estimator) instead removes the rigid part of the deformation too: 0.58 (flag) / 0.91 (face)
+relative EPE on perfect ground-truth shapes, against 0.60 / 0.05 for the weighted window.
+The flow of pair (a, b) is then ``T_a_b X_b - X_a`` with the estimated camera motion
+``T_a_b`` (the earlier camera's axes), exactly as the synthetic ground truth.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
+
+Cloud = tuple[np.ndarray, np.ndarray]   # (N, 3) points, (N,) unique track ids
 
 
 @dataclass(frozen=True)
 class SceneFlow:
-    """points (N, 3) current positions; velocity (N, 3) in units/s; ids (N,) track ids."""
+    """points (N, 3) current positions; velocity (N, 3) in units/s in the earlier camera's axes
+    (``frame='object'``: ego-motion removed); ids (N,) track ids; ``T_prev_cur`` (4, 4) the
+    (estimated) camera motion that maps current-camera coordinates to the previous camera's."""
 
     points: np.ndarray
     velocity: np.ndarray
     ids: np.ndarray
-    T_cur_prev: np.ndarray
+    T_prev_cur: np.ndarray
+
+
+def weighted_kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """R (3, 3), t (3,) minimising sum_i w_i |R A_i + t - B_i|^2 (proper rotation)."""
+    w = np.ones(len(A)) if w is None else np.asarray(w, np.float64)
+    sw = max(float(w.sum()), 1e-300)
+    ca = w @ A / sw
+    cb = w @ B / sw
+    H = ((A - ca) * w[:, None]).T @ (B - cb)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cb - R @ ca
+
+
+def _check_cloud(X: np.ndarray, ids: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    X = np.asarray(X, np.float64)
+    ids = np.asarray(ids).astype(np.int64)
+    if X.ndim != 2 or X.shape != (len(ids), 3):
+        raise ValueError(f'{name}: expected (N, 3) points and N ids, got {X.shape} and '
+                         f'{ids.shape}')
+    if np.unique(ids).size != len(ids):
+        raise ValueError(f'{name}: {len(ids) - np.unique(ids).size} duplicated track id(s); '
+                         'ids must be unique')
+    return X, ids
+
+
+def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float = 0.1,
+                 min_points: int = 3, prior: tuple[np.ndarray, np.ndarray] | None = None,
+                 return_weights: bool = False):
+    """Camera poses of a window of clouds in one object frame: (R (F, 3, 3), t (F, 3)) with
+    ``X_f ~ R_f Z + t_f`` for the template Z, frame 0's pose the identity.
+
+    Weighted generalised Procrustes (see the module doc): per-track weight
+    ``1 / (spread^2 + (softness * median spread)^2)``, ``spread`` the RMS distance of the
+    track's object-frame positions from its template position; ``iterations`` re-weightings
+    (0: the unweighted fit).  A frame sharing fewer than ``min_points`` tracks with the template
+    keeps its previous frame's pose.
+
+    ``prior`` (ids, weights): start from these per-track weights instead of uniform ones (a
+    warm start from the previous window; fewer ``iterations`` are then needed).
+    ``return_weights``: also return (ids, weights) of the last re-weighting."""
+    F = len(clouds)
+    if F == 0:
+        raise ValueError('clouds: expected at least one cloud')
+    checked = [_check_cloud(X, i, f'clouds[{k}]') for k, (X, i) in enumerate(clouds)]
+    uid = np.unique(np.concatenate([i for _, i in checked]))
+    P = uid.size
+    Xs = np.full((F, P, 3), np.nan)
+    for f, (X, i) in enumerate(checked):
+        Xs[f, np.searchsorted(uid, i)] = X
+    seen = np.isfinite(Xs).all(-1)                       # (F, P)
+    R = np.tile(np.eye(3), (F, 1, 1))
+    t = np.zeros((F, 3))
+    # template: frame 0, then tracks first seen later at their first position chained by
+    # consecutive fits (a rough start; the iterations refine it)
+    Z = Xs[0].copy()
+    for f in range(1, F):
+        R[f], t[f] = R[f - 1], t[f - 1]
+        m = seen[f] & np.isfinite(Z).all(-1)
+        if m.sum() >= min_points:
+            R[f], t[f] = weighted_kabsch(Z[m], Xs[f, m])
+        new = seen[f] & ~np.isfinite(Z).all(-1)
+        Z[new] = (Xs[f, new] - t[f]) @ R[f]
+    w = np.ones(P)
+    if prior is not None:
+        pid, pw = (np.asarray(v) for v in prior)
+        if pid.shape != pw.shape:
+            raise ValueError(f'prior: ids {pid.shape} and weights {pw.shape} differ in shape')
+        if pid.size:
+            common, iu, ip = np.intersect1d(uid, pid.astype(np.int64), return_indices=True)
+            if common.size:
+                w[:] = float(np.min(pw[ip]))      # tracks new to the window: least trusted
+                w[iu] = pw[ip]
+    for it in range(iterations + 1):
+        for f in range(F):
+            m = seen[f] & np.isfinite(Z).all(-1)
+            if m.sum() >= min_points:
+                R[f], t[f] = weighted_kabsch(Z[m], Xs[f, m], w[m])
+            elif f:
+                R[f], t[f] = R[f - 1], t[f - 1]
+        # gauge: frame 0 is the template frame
+        R0, t0 = R[0].copy(), t[0].copy()
+        R = R @ R0.T
+        t = t - R @ t0
+        Y = np.einsum('fpj,fjk->fpk', Xs - t[:, None], R)   # R_f^T (X - t_f), row vectors
+        with np.errstate(invalid='ignore'):
+            Z = np.nanmean(np.where(seen[..., None], Y, np.nan), axis=0)
+            d2 = np.where(seen, ((Y - Z) ** 2).sum(-1), np.nan)
+            spread = np.sqrt(np.nanmean(d2, axis=0))
+        ok = np.isfinite(spread) & (seen.sum(0) >= 2)
+        if it == iterations or not ok.any():
+            break
+        eps = softness * float(np.median(spread[ok])) + 1e-12
+        w = np.where(ok, 1.0 / (np.where(ok, spread, 0.0) ** 2 + eps ** 2), 0.0)
+        w /= w.max()
+        w[~ok] = w[ok].min() if ok.any() else 1.0       # tracks seen once: least trusted
+    if return_weights:
+        return R, t, (uid, w)
+    return R, t
+
+
+def motion_between(R: np.ndarray, t: np.ndarray, a: int, b: int) -> np.ndarray:
+    """T_a_b (4, 4): camera b coordinates -> camera a, from :func:`object_poses`."""
+    Rab = R[a] @ R[b].T
+    T = np.eye(4)
+    T[:3, :3] = Rab
+    T[:3, 3] = t[a] - Rab @ t[b]
+    return T
+
+
+def pair_flow(prev: Cloud, cur: Cloud, T_a_b: np.ndarray, dt: float) -> SceneFlow:
+    """``(T_a_b X_b - X_a) / dt`` on the track ids the two (checked) clouds share."""
+    a_X, a_ids = prev
+    b_X, b_ids = cur
+    common, ip, ic = np.intersect1d(a_ids, b_ids, assume_unique=True, return_indices=True)
+    a, b = a_X[ip], b_X[ic]
+    moved = b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    return SceneFlow(points=b, velocity=(moved - a) / dt, ids=common.astype(np.uint32),
+                     T_prev_cur=T_a_b)
 
 
 def scene_flow(prev_points: np.ndarray, prev_ids: np.ndarray, points: np.ndarray,
-               ids: np.ndarray, dt: float, frame: str = 'object') -> SceneFlow:
-    """Velocity of every current point that also exists in the previous cloud (matched by id)."""
+               ids: np.ndarray, dt: float, frame: str = 'object',
+               history: Sequence[Cloud] = (), iterations: int = 8,
+               softness: float = 0.1) -> SceneFlow:
+    """Velocity of every current point that also exists in the previous cloud (matched by id).
+
+    ``frame='object'``: the ego-motion is estimated by :func:`object_poses` over ``history``
+    (older clouds, oldest first), the previous and the current cloud; with no history and two
+    clouds only this is a weighted two-frame fit (weak: prefer a window)."""
     if frame not in ('object', 'camera'):
         raise ValueError(f"frame={frame!r}: expected 'object' or 'camera'")
     if not dt > 0:
         raise ValueError(f'dt: expected a positive time step, got {dt}')
-    prev_points = np.asarray(prev_points, np.float64)
-    points = np.asarray(points, np.float64)
-    if prev_points.shape != (len(prev_ids), 3) or points.shape != (len(ids), 3):
-        raise ValueError('points/ids: expected (N, 3) points and N ids')
-    for name, v in (('prev_ids', prev_ids), ('ids', ids)):
-        if np.unique(v).size != len(v):
-            raise ValueError(f'{name}: {len(v) - np.unique(v).size} duplicated track id(s); '
-                             'ids must be unique')
-    common, ip, ic = np.intersect1d(prev_ids, ids, assume_unique=True, return_indices=True)
-    a, b = prev_points[ip], points[ic]
+    prev = _check_cloud(prev_points, prev_ids, 'prev_points')
+    cur = _check_cloud(points, ids, 'points')
     T = np.eye(4)
-    if frame == 'object' and common.size >= 3:
-        from ..registration.icp import kabsch   # lazily: MSF needs no registration code
-        T = kabsch(a, b)
-        a = a @ T[:3, :3].T + T[:3, 3]
-    return SceneFlow(points=b, velocity=(b - a) / dt, ids=common.astype(np.uint32), T_cur_prev=T)
+    if frame == 'object':
+        window = [*history, prev, cur]
+        R, t = object_poses(window, iterations=iterations, softness=softness)
+        T = motion_between(R, t, len(window) - 2, len(window) - 1)
+    return pair_flow(prev, cur, T, dt)
+
+
+def sequence_flow(clouds: Sequence[Cloud], dts: Sequence[float], frame: str = 'object',
+                  window: int = 0, iterations: int = 8, softness: float = 0.1
+                  ) -> list[SceneFlow]:
+    """Flow of every consecutive pair (clouds[k-1], clouds[k]), k = 1.. (len - 1 results;
+    ``dts[k-1]`` its time step).  ``window`` 0: one pose estimate over all clouds (offline);
+    > 1: causal, each pair from the ``window`` clouds ending at it (what the node does)."""
+    checked = [_check_cloud(X, i, f'clouds[{k}]') for k, (X, i) in enumerate(clouds)]
+    if len(dts) != max(len(checked) - 1, 0):
+        raise ValueError(f'dts: expected {len(checked) - 1} time steps, got {len(dts)}')
+    out = []
+    if frame == 'object' and window == 0 and len(checked) >= 2:
+        R, t = object_poses(checked, iterations=iterations, softness=softness)
+        for k in range(1, len(checked)):
+            out.append(pair_flow(checked[k - 1], checked[k], motion_between(R, t, k - 1, k),
+                             dts[k - 1]))
+        return out
+    for k in range(1, len(checked)):
+        hist = checked[max(0, k + 1 - window):k - 1] if window > 1 else []
+        out.append(scene_flow(*checked[k - 1], *checked[k], dts[k - 1], frame, hist,
+                              iterations, softness))
+    return out
