@@ -28,6 +28,8 @@ EXAMPLES = {
     'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
     'scene-flow': 'nrsfm-ros scene-flow rgbd/ --out flow.npz   (rgbd/color/*.png, '
                   'rgbd/depth/*.png 16-bit mm, rgbd/intrinsics.txt)',
+    'view': 'nrsfm-ros view bags/face_out --rate 0.5 --loop   (then open ws://127.0.0.1:8765 in '
+            'Foxglove with config/foxglove_layout.json); nrsfm-ros view   (the live topics)',
 }
 
 
@@ -208,6 +210,17 @@ def _parser() -> argparse.ArgumentParser:
                     help='msf (default), dis (DIS optical flow + depth) or icp (per-segment '
                     'projective ICP)')
     sf.add_argument('--segments', type=int, default=300, help='msf/icp: SLIC segments')
+
+    vw = add('view', 'Foxglove WebSocket server: plays a bag, or bridges the live topics '
+             '(without BAG): clouds, images, depth, scene-flow arrows, camera pose')
+    vw.add_argument('bag', nargs='?', default=None,
+                    help='bag to play (default: bridge the live ROS topics)')
+    vw.add_argument('--port', type=int, default=8765, help='WebSocket port (default 8765; 0: '
+                    'any free port)')
+    vw.add_argument('--host', default='127.0.0.1', help='address to serve on (default '
+                    '127.0.0.1)')
+    vw.add_argument('--rate', type=float, default=1.0, help='bag: playback rate (default 1.0)')
+    vw.add_argument('--loop', action='store_true', help='bag: play it again and again')
     return p
 
 
@@ -958,6 +971,70 @@ def cmd_scene_flow(args: argparse.Namespace) -> int:
     print(f'wrote {args.out}: flow {flow.shape} m ({args.method}), '
           f'{100 * valid.mean():.1f}% valid, {st["seconds_per_frame"]:.3f} s/frame')
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    import threading
+    if not args.rate > 0:
+        raise CliError(f'--rate {args.rate}: must be > 0')
+    if not 0 <= args.port <= 65535:
+        raise CliError(f'--port {args.port}: expected 0..65535 (0: any free port)')
+    if args.bag is None and (args.loop or args.rate != 1.0):
+        raise CliError('--rate and --loop play a bag: name the BAG')
+    try:
+        from . import view
+    except ImportError as err:
+        raise CliError(f'view needs the foxglove-sdk package (pip install foxglove-sdk; '
+                       f'{_one_line(err)})') from err
+    if args.bag is not None:
+        view.bag_routes(args.bag)             # a bad bag is one error line before serving
+    stop = threading.Event()
+    with view.Viewer(args.host, args.port) as viewer:
+        print(f'serving {viewer.url} (Foxglove: Open connection -> Foxglove WebSocket; layout '
+              f'{view.layout_path()}); Ctrl-C to stop', flush=True)
+        if args.bag is None:
+            return _view_live(viewer, view, stop)
+        damage: list[str] = []
+        print('playback starts when a client subscribes', flush=True)
+        try:
+            counts = view.play_bag(viewer, args.bag, rate=args.rate, loop=args.loop, stop=stop,
+                                   damage=damage,
+                                   on_pass=lambda n: print(f'pass {n} done', flush=True))
+            print(f'played {sum(counts.values())} messages; still serving (Ctrl-C to stop)',
+                  flush=True)
+            for line in damage:
+                print(f'note: {line}', flush=True)
+            while True:
+                stop.wait(3600)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            stop.set()
+            _view_summary(viewer)
+    return 0
+
+
+def _view_live(viewer: Any, view: Any, stop: Any) -> int:
+    node = _rclpy_node('nrsfm_view')
+    try:
+        _, skipped = view.bridge_live(viewer, node)
+        for line in skipped:
+            print(f'note: not bridged: {line}', flush=True)
+        view.spin(node, stop)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        stop.set()
+        _shutdown(node)
+        _view_summary(viewer)
+    return 0
+
+
+def _view_summary(viewer: Any) -> None:
+    for topic, n in viewer.counts.items():
+        print(f'  {topic}: {n} messages')
+    for topic, n in viewer.errors.items():
+        print(f'  {topic}: {n} not shown ({viewer.last_error[topic]})')
 
 
 if __name__ == '__main__':

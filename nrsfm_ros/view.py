@@ -14,6 +14,7 @@ as live.
 """
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -33,6 +34,7 @@ SERVER_NAME = 'nrsfm_ros'
 DEFAULT_PORT = 8765
 SUBSCRIBE_SETTLE_S = 0.25     # after a client's first subscription, time for its others
 POLL_S = 0.1                  # stop-flag polling while waiting or spinning
+RELEASE_TIMEOUT_S = 2.0       # close(): longest wait for the server to let go of its port
 LIVE_QUEUE = 5                # live subscriptions: keep last N
 DEPTH_RANGE_M = (0.0, 8.0)    # the layout's depth panels map this range to black..white
 # the layout's grid: horizontal in the optical frame (y down), 1 m below the camera, 4 m ahead
@@ -127,12 +129,27 @@ class Viewer:
         for ch in self._channels.values():
             ch.close()
         self.server.stop()
+        _wait_released(self.host, self.port)
 
     def __enter__(self) -> Viewer:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _wait_released(host: str, port: int, timeout: float = RELEASE_TIMEOUT_S) -> bool:
+    """Wait until nothing listens on host:port (the server stops asynchronously, in ms)."""
+    addr = '127.0.0.1' if host in ('', '0.0.0.0') else '::1' if host == '::' else host
+    end = time.monotonic() + timeout
+    while True:
+        with socket.socket(socket.AF_INET6 if ':' in addr else socket.AF_INET) as s:
+            s.settimeout(POLL_S)
+            if s.connect_ex((addr, port)) != 0:
+                return True
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
 
 
 def _wait_for_client(viewer: Viewer, stop: threading.Event) -> bool:
