@@ -12,11 +12,13 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')
+         + glob('config/*.json')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
                       'PyYAML'],
-    extras_require={'plot': ['matplotlib']},     # nrsfm-ros evaluate --plot
+    extras_require={'plot': ['matplotlib'],      # nrsfm-ros evaluate --plot
+                    'view': ['foxglove-sdk>=0.30.3']},   # nrsfm-ros view
     zip_safe=True,
     maintainer='nrsfm_ros maintainers',
     maintainer_email='maintainers@nrsfm-ros.invalid',

@@ -974,7 +974,6 @@ def cmd_scene_flow(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    import threading
     if not args.rate > 0:
         raise CliError(f'--rate {args.rate}: must be > 0')
     if not 0 <= args.port <= 65535:
@@ -982,59 +981,13 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.bag is None and (args.loop or args.rate != 1.0):
         raise CliError('--rate and --loop play a bag: name the BAG')
     try:
-        from . import view
+        from .view import serve
     except ImportError as err:
         raise CliError(f'view needs the foxglove-sdk package (pip install foxglove-sdk; '
                        f'{_one_line(err)})') from err
-    if args.bag is not None:
-        view.bag_routes(args.bag)             # a bad bag is one error line before serving
-    stop = threading.Event()
-    with view.Viewer(args.host, args.port) as viewer:
-        print(f'serving {viewer.url} (Foxglove: Open connection -> Foxglove WebSocket; layout '
-              f'{view.layout_path()}); Ctrl-C to stop', flush=True)
-        if args.bag is None:
-            return _view_live(viewer, view, stop)
-        damage: list[str] = []
-        print('playback starts when a client subscribes', flush=True)
-        try:
-            counts = view.play_bag(viewer, args.bag, rate=args.rate, loop=args.loop, stop=stop,
-                                   damage=damage,
-                                   on_pass=lambda n: print(f'pass {n} done', flush=True))
-            print(f'played {sum(counts.values())} messages; still serving (Ctrl-C to stop)',
-                  flush=True)
-            for line in damage:
-                print(f'note: {line}', flush=True)
-            while True:
-                stop.wait(3600)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            stop.set()
-            _view_summary(viewer)
+    serve(args.bag, args.host, args.port, args.rate, args.loop,
+          out=lambda line: print(line, flush=True))
     return 0
-
-
-def _view_live(viewer: Any, view: Any, stop: Any) -> int:
-    node = _rclpy_node('nrsfm_view')
-    try:
-        _, skipped = view.bridge_live(viewer, node)
-        for line in skipped:
-            print(f'note: not bridged: {line}', flush=True)
-        view.spin(node, stop)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        stop.set()
-        _shutdown(node)
-        _view_summary(viewer)
-    return 0
-
-
-def _view_summary(viewer: Any) -> None:
-    for topic, n in viewer.counts.items():
-        print(f'  {topic}: {n} messages')
-    for topic, n in viewer.errors.items():
-        print(f'  {topic}: {n} not shown ({viewer.last_error[topic]})')
 
 
 if __name__ == '__main__':

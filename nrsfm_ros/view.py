@@ -31,6 +31,7 @@ from .io.errors import MessageError
 from .io.foxglove_view import CAMERA_FRAME, ROUTES, Route, routes_for
 
 SERVER_NAME = 'nrsfm_ros'
+LAYOUT_FILE = 'foxglove_layout.json'
 DEFAULT_PORT = 8765
 SUBSCRIBE_SETTLE_S = 0.25     # after a client's first subscription, time for its others
 POLL_S = 0.1                  # stop-flag polling while waiting or spinning
@@ -68,9 +69,12 @@ class Viewer:
             raise ValueError(f'port={port}: expected 0..65535 (0: any free port)')
         self.context = foxglove.Context()
         self.listener = _Listener()
-        self.server = foxglove.start_server(name=SERVER_NAME, host=host, port=port,
-                                            context=self.context,
-                                            server_listener=self.listener)
+        try:
+            self.server = foxglove.start_server(name=SERVER_NAME, host=host, port=port,
+                                                context=self.context,
+                                                server_listener=self.listener)
+        except RuntimeError as err:       # the SDK's error, e.g. the port is taken
+            raise OSError(f'cannot serve on {host}:{port}: {err}') from err
         self.host, self.port = host, int(self.server.port)
         self._routes: dict[str, list[Route]] = {}
         self._channels: dict[str, Any] = {}
@@ -253,9 +257,69 @@ def bridge_live(viewer: Viewer, node: Any, routes: Sequence[Route] = ROUTES
 
 
 def spin(node: Any, stop: threading.Event) -> None:
+    """Spin ``node`` (default context) until ``stop`` is set or rclpy shuts down."""
     import rclpy
     while not stop.is_set() and rclpy.ok():
         rclpy.spin_once(node, timeout_sec=POLL_S)
+
+
+def serve(bag: str | Path | None = None, host: str = '127.0.0.1', port: int = DEFAULT_PORT,
+          rate: float = 1.0, loop: bool = False, stop: threading.Event | None = None,
+          out: Callable[[str], None] = print) -> Viewer:
+    """The ``nrsfm-ros view`` session: serve ``bag`` (or, without one, the live topics)
+    until ``stop`` is set or Ctrl-C; progress and a per-topic summary go to ``out``.  A bag
+    stays served after its last message (Foxglove keeps showing it).  Returns the (closed)
+    viewer."""
+    stop = stop or threading.Event()
+    if bag is not None:
+        bag_routes(bag)                   # a bad bag fails before the server starts
+    with Viewer(host, port) as viewer:
+        out(f'serving {viewer.url} (Foxglove: Open connection -> Foxglove WebSocket; layout '
+            f'{layout_path()}); Ctrl-C to stop')
+        try:
+            if bag is None:
+                _serve_live(viewer, stop, out)
+            else:
+                damage: list[str] = []
+                out('playback starts when a client subscribes')
+                counts = play_bag(viewer, bag, rate=rate, loop=loop, stop=stop, damage=damage,
+                                  on_pass=lambda n: out(f'pass {n} done'))
+                for line in damage:
+                    out(f'note: {line}')
+                if not stop.is_set():
+                    out(f'played {sum(counts.values())} messages; still serving')
+                    while not stop.wait(3600):
+                        pass
+        except KeyboardInterrupt:
+            pass
+        finally:
+            stop.set()
+            for topic, n in viewer.counts.items():
+                out(f'  {topic}: {n} messages')
+            for topic, n in viewer.errors.items():
+                out(f'  {topic}: {n} not shown ({viewer.last_error[topic]})')
+    return viewer
+
+
+def _serve_live(viewer: Viewer, stop: threading.Event, out: Callable[[str], None]) -> None:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+
+    from .live import ensure_loopback_env
+    ensure_loopback_env()
+    rclpy.init()
+    node = Node('nrsfm_view')
+    try:
+        _, skipped = bridge_live(viewer, node)
+        for line in skipped:
+            out(f'note: not bridged: {line}')
+        spin(node, stop)
+    except ExternalShutdownException:     # Ctrl-C: rclpy's handler shut the context down
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
 
 
 # ------------------------------------------------------------------ layout
@@ -302,5 +366,10 @@ def layout() -> str:
 
 
 def layout_path() -> Path:
+    """config/foxglove_layout.json of the source tree, else of the installed share/."""
+    import sys
+
     from .live import package_root
-    return package_root() / 'config' / 'foxglove_layout.json'
+    candidates = [package_root() / 'config' / LAYOUT_FILE,
+                  Path(sys.prefix) / 'share' / 'nrsfm_ros' / 'config' / LAYOUT_FILE]
+    return next((c for c in candidates if c.exists()), candidates[0])
