@@ -21,11 +21,11 @@ websockets_client = pytest.importorskip('websockets.sync.client')
 
 from foxglove import messages as fm  # noqa: E402
 
+from nrsfm_ros import view  # noqa: E402
 from nrsfm_ros.io import foxglove_view as fv  # noqa: E402
 from nrsfm_ros.io import image as img_io  # noqa: E402
 from nrsfm_ros.io import pointcloud2 as pc2  # noqa: E402
 from nrsfm_ros.io.msgtypes import RosbagsFactory  # noqa: E402
-from nrsfm_ros import view  # noqa: E402
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
 MESSAGE_DATA = 0x01          # binary opcode of a message data frame
@@ -320,7 +320,7 @@ def test_cli_view_serves_and_stops_on_ctrl_c(bags):
         with websockets_client.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:
             assert json.loads(ws.recv(timeout=5))['op'] == 'serverInfo'
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        _, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
     finally:
         if proc.poll() is None:
