@@ -3,6 +3,16 @@ per-segment projective ICP and MSF, in one run, on deforming surfaces seen by a 
 with and without the occluder, at 320x240 and 640x480.
 
     .venv/bin/python bench/bench_sceneflow.py [--frames 8] [--surfaces flag,face] [--json out]
+    .venv/bin/python bench/bench_sceneflow.py --mono [--surfaces flag,face] [--mono-size 256x192]
+
+``--mono`` (monocular NRSfM-Flow, issue 14) instead renders a 30 deg camera sweep
+(``nrsfm-ros synth --camera-motion 30``, 60 frames), runs ``process`` (tracker ->
+reconstructor -> scene_flow, nrsfm_ros.pipeline.process_bag) and scores with
+``evaluation.scene_flow_errors`` (what ``nrsfm-ros evaluate`` and the demo print: relative EPE in
+the object frame, mean over frames 1..59): the published scene_flow/points; zero flow; the
+reconstructor's clouds through the old two-frame Kabsch fit and with the *true* ego-motion
+removed (what the reconstruction allows at best); the ground-truth shapes through the node's
+estimator (its own floor) and through the two-frame fit.
 
 Flow is scored from the first frame to every later one (what ``nrsfm-ros scene-flow`` writes),
 per surface pixel visible in the first frame, against ``io.synth_flow.dense_scene_flow``
@@ -76,14 +86,94 @@ def run_case(surface: str, size: tuple[int, int], occluder: bool, sensor: str, f
     return rows
 
 
+def _node_flows(clouds: dict, stamps: np.ndarray, params=None) -> dict:
+    """Replay {frame: (X, ids)} through SceneFlowProcessor: {frame: (velocity, ids)}."""
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import SceneFlowParams
+    from nrsfm_ros.processing import SceneFlowProcessor
+    fac = RosbagsFactory()
+    proc = SceneFlowProcessor(fac, params or SceneFlowParams())
+    out = {}
+    for f in sorted(clouds):
+        X, ids = clouds[f]
+        X = np.asarray(X, np.float32)
+        msg = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
+                          'track_id': np.asarray(ids, np.uint32)}, fac, int(stamps[f]), 'cam')
+        m = proc.on_points(msg)[0][2]
+        out[f] = (pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64),
+                  pc2.read_fields(m, ('track_id',), np.uint32)[:, 0])
+    return out
+
+
+def _true_ego(clouds: dict, seq) -> dict:
+    """Flow of consecutive clouds with the true camera motion removed."""
+    fs = sorted(clouds)
+    out = {}
+    for a, b in zip(fs[:-1], fs[1:]):
+        (Xa, ia), (Xb, ib) = clouds[a], clouds[b]
+        common, pa, pb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
+        T = relative_motion(seq.T_camera_world, a, b)
+        v = camera_to_object(Xb[pb] - Xa[pa], Xa[pa], T) * seq.config.fps / (b - a)
+        out[b] = (v, common)
+    return out
+
+
+def run_mono(surface: str, size: tuple[int, int], frames: int = 60) -> list[dict]:
+    import tempfile
+    from nrsfm_ros.evaluation import BagOutputs, read_outputs, scene_flow_errors
+    from nrsfm_ros.io.sequence_bag import write_sequence_bag
+    from nrsfm_ros.params import SceneFlowParams
+    from nrsfm_ros.pipeline import process_bag
+    seq = generate(SynthConfig(surface=surface, width=size[0], height=size[1], frames=frames,
+                               camera_motion_deg=30.0))
+    with tempfile.TemporaryDirectory() as tmp:
+        write_sequence_bag(seq, Path(tmp) / 'in')
+        t0 = time.perf_counter()
+        process_bag(Path(tmp) / 'in', Path(tmp) / 'out', progress=False,
+                    stages=('tracker', 'reconstructor', 'scene_flow'))
+        seconds = time.perf_counter() - t0
+        out = read_outputs(Path(tmp) / 'out', seq)
+    two = SceneFlowParams(window=2, iterations=0, warm_iterations=0)
+    gt = {f: (seq.S[f], seq.track_ids) for f in range(seq.S.shape[0])}
+    st = seq.stamps_ns
+    cases = [('pipeline scene_flow/points', out.flows),
+             ('zero flow', {f: (0 * v, i) for f, (v, i) in out.flows.items()}),
+             ('recon clouds, two-frame Kabsch (old)', _node_flows(out.clouds, st, two)),
+             ('recon clouds, true ego-motion', _true_ego(out.clouds, seq)),
+             ('GT shapes, node estimator (floor)', _node_flows(gt, st)),
+             ('GT shapes, two-frame Kabsch (old)', _node_flows(gt, st, two))]
+    rows = []
+    for name, flows in cases:
+        r = scene_flow_errors(BagOutputs(flows=flows), seq)
+        rows.append({'surface': surface, 'size': f'{size[0]}x{size[1]}', 'method': name,
+                     'rel_epe': r.get('scene_flow_relative_epe', float('nan')),
+                     'frames': r.get('scene_flow_frames_scored', 0),
+                     'process_s': seconds if name.startswith('pipeline') else None})
+    return rows
+
+
 def main() -> int:
     p = parser(__doc__)
+    p.add_argument('--mono', action='store_true', help='the monocular NRSfM-Flow section only')
+    p.add_argument('--mono-size', default='256x192')
     p.add_argument('--frames', type=int, default=8)
     p.add_argument('--surfaces', default='flag,face')
     p.add_argument('--sizes', default='320x240,640x480')
     p.add_argument('--sensor', default='none,rgbd')
     args = p.parse_args()
     rows = []
+    if args.mono:
+        wh = tuple(int(v) for v in args.mono_size.split('x'))
+        for surface in args.surfaces.split(','):
+            rows += run_mono(surface, wh)
+            print(f'# done {surface}', file=sys.stderr, flush=True)
+        table(['surface', 'size', 'method', 'rel EPE (object frame)', 'frames scored'],
+              [(r['surface'], r['size'], r['method'], f"{r['rel_epe']:.3f}", r['frames'])
+               for r in rows])
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        return 0
     for size in args.sizes.split(','):
         wh = tuple(int(v) for v in size.split('x'))
         for surface in args.surfaces.split(','):
