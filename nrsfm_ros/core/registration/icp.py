@@ -29,10 +29,10 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     ``init``: 'centroid' (translate centroids together), 'identity', 'global' (a search over
     all rotations, robust to outliers and missing parts: ``globalsearch.global_pose``; the
     iterations then use the target points its density filter keeps; ``converged`` is False
-    when its best poses are ambiguous; the pose is then finished by ``refine.fine_levels``, robust
-    symmetric point-to-plane on grids of 4, 2, 1 x ``voxel`` (1% of the target diagonal when
-    voxel is 0),
-    whatever ``method``: ``trim`` only serves the search), or a 4x4 T_target_source.
+    when its best poses are ambiguous; the pose is then finished by ``refine.fine_levels``,
+    robust symmetric point-to-plane on grids of 4, 2, 1 x ``voxel`` (1% of the target diagonal
+    when voxel is 0) whatever ``method``, ``trim`` serving only the search), or a 4x4
+    T_target_source.
     ``trim``: fraction of closest pairs kept each iteration (robust to partial overlap).
     ``max_correspondence_distance``: pairs further apart are not used by the iterations.
     ``target_tree``: a cKDTree of ``target`` to reuse across calls (a fixed reference).
