@@ -226,7 +226,8 @@ def registration_errors(out: BagOutputs, seq: SynthSequence) -> dict[str, Any]:
 def scene_flow_errors(out: BagOutputs, seq: SynthSequence, min_points: int = MIN_POINTS
                       ) -> dict[str, Any]:
     """Relative EPE (``core.metrics.relative_epe``) of scene_flow/points against
-    ``io.synth.scene_flow_ground_truth``, points matched by track id, mean over frames 1..F-1
+    ``io.synth.scene_flow_ground_truth`` (object frame of ``core.sceneflow.definition``, axes of
+    the earlier camera, m/s), points matched by track id, mean over frames 1..F-1
     (frame 0 has no flow); a frame with fewer than ``min_points`` matches is unscored.  Empty
     where the bag has no scene flow or the ground truth no world-frame shapes."""
     if not out.flows or seq.S_world.shape != seq.S.shape:

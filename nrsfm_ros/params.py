@@ -244,7 +244,7 @@ class SceneFlowParams(Params):
                        'camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info')
     frame: str = rule('object', _one_of('object', 'camera'),
                       'nrsfm: object (camera ego-motion, estimated from the stream, removed) '
-                      'or camera (raw difference); both in the previous camera\'s axes; msf '
+                      'in the previous camera\'s axes, or camera (raw difference); msf '
                       'publishes the camera frame (its camera pose is unknown)')
     window: int = rule(10, _at_least(2), 'nrsfm object frame: clouds (the current one '
                        'included) the ego-motion is estimated over')
