@@ -252,6 +252,8 @@ class SceneFlowParams(Params):
                            'ego-motion fit (weights from each track\'s spread) on a cold start')
     warm_iterations: int = rule(3, _at_least(0), 'nrsfm object frame: re-weightings when '
                                 'warm-started from the previous window\'s weights')
+    pose_points: int = rule(2000, _at_least(0), 'nrsfm object frame: tracks the ego-motion '
+                            'is fitted on (a fixed subset of the ids; 0: all)')
     softness: float = rule(0.1, _positive, 'nrsfm object frame: track weight 1 / (spread^2 + '
                            '(softness * median spread)^2)')
     stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')

@@ -708,7 +708,7 @@ class SceneFlowProcessor(Processor):
                 R, t, self._weights = object_poses(
                     window, iterations=p.iterations if self._weights is None else
                     p.warm_iterations, softness=p.softness, prior=self._weights,
-                    return_weights=True)
+                    return_weights=True, max_points=p.pose_points)
                 sf = pair_flow((prev[1], prev[2].astype(np.int64)), (X, ids.astype(np.int64)),
                                motion_between(R, t, len(window) - 2, len(window) - 1), dt)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids

@@ -93,6 +93,17 @@ def test_object_poses_recover_the_camera_motion_not_the_flap():
         T = motion_between(R, t, a, b)
         T_true = relative_motion(P, a, b)
         np.testing.assert_allclose(T, T_true, atol=2e-3)
+    # on a fixed subset of ~100 of the 500 tracks (pose_points), warm-started: the same poses
+    Rs, ts, (sid, sw) = object_poses([(S[f], ids) for f in range(len(S))], max_points=100,
+                                     return_weights=True)
+    assert 60 <= sid.size <= 140 and sw.shape == sid.shape
+    Rw, tw = object_poses([(S[f], ids) for f in range(1, len(S))], iterations=2,
+                          prior=(sid, sw), max_points=100)
+    for a, b in ((0, 1), (4, 5), (0, 10)):
+        np.testing.assert_allclose(motion_between(Rw, tw, a, b), relative_motion(P, a + 1, b + 1),
+                                   atol=3e-3)
+        np.testing.assert_allclose(motion_between(Rs, ts, a, b), relative_motion(P, a, b),
+                                   atol=3e-3)
     # the unweighted fit (iterations=0) is pulled by the flap: clearly worse
     R0, t0 = object_poses([(S[f], ids) for f in range(len(S))], iterations=0)
     err = [np.abs(motion_between(R, t, f - 1, f) - relative_motion(P, f - 1, f))[:3].max()

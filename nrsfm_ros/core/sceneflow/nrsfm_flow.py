@@ -67,7 +67,7 @@ def _check_cloud(X: np.ndarray, ids: np.ndarray, name: str) -> tuple[np.ndarray,
 
 def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float = 0.1,
                  min_points: int = 3, prior: tuple[np.ndarray, np.ndarray] | None = None,
-                 return_weights: bool = False):
+                 return_weights: bool = False, max_points: int = 0):
     """Camera poses of a window of clouds in one object frame: (R (F, 3, 3), t (F, 3)) with
     ``X_f ~ R_f Z + t_f`` for the template Z, frame 0's pose the identity.
 
@@ -79,16 +79,25 @@ def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float =
 
     ``prior`` (ids, weights): start from these per-track weights instead of uniform ones (a
     warm start from the previous window; fewer ``iterations`` are then needed).
-    ``return_weights``: also return (ids, weights) of the last re-weighting."""
+    ``return_weights``: also return (ids, weights) of the last re-weighting.
+    ``max_points`` > 0: fit on about that many tracks (a fixed pseudo-random subset of the ids)."""
     F = len(clouds)
     if F == 0:
         raise ValueError('clouds: expected at least one cloud')
     checked = [_check_cloud(X, i, f'clouds[{k}]') for k, (X, i) in enumerate(clouds)]
     uid = np.unique(np.concatenate([i for _, i in checked]))
+    if max_points and uid.size > max_points:
+        # a fixed pseudo-random subset of the track ids (the same track stays in or out from
+        # one window to the next): the poses need a few thousand points, not every one
+        m = -(-uid.size // max_points)
+        uid = uid[(uid.astype(np.uint64) * np.uint64(2654435761) % np.uint64(2 ** 32)
+                   % np.uint64(m)) == 0]
     P = uid.size
     Xs = np.full((F, P, 3), np.nan)
     for f, (X, i) in enumerate(checked):
-        Xs[f, np.searchsorted(uid, i)] = X
+        k = np.searchsorted(uid, i).clip(max=max(P - 1, 0))
+        hit = uid[k] == i if P else np.zeros(len(i), bool)
+        Xs[f, k[hit]] = X[hit]
     seen = np.isfinite(Xs).all(-1)                       # (F, P)
     R = np.tile(np.eye(3), (F, 1, 1))
     t = np.zeros((F, 3))
