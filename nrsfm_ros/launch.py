@@ -10,15 +10,14 @@ from pathlib import Path
 
 
 class _Startup:
-    """Ctrl-C before the graph is up: exit 0 while importing (no node exists yet); while the
-    nodes are being spawned, remember it and stop them once they all exist."""
-    spawning = False
+    """Ctrl-C before the graph is up is only remembered (raising inside an import can break
+    it: an interrupted C-extension import of NumPy fails with ImportError): once the imports
+    are done the launcher exits 0 (no node exists yet); while the nodes are being spawned, it
+    stops them once they all exist."""
     stop = False
 
     @classmethod
     def on_sigint(cls, signum: int, frame: object) -> None:
-        if not cls.spawning:
-            raise SystemExit(0)
         cls.stop = True
 
 
@@ -37,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f'error: --max-restarts {args.max_restarts}: must be >= 0', file=sys.stderr)
             return 2
         nodes = [n for n in args.nodes.split(',') if n]
-        _Startup.spawning = True
+        if _Startup.stop:
+            return 0
         try:
             graph = Graph(nodes, Path(args.params) if args.params else None)
         except ValueError as err:

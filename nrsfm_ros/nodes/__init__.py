@@ -6,12 +6,15 @@ import signal
 
 # A node process started by the launcher (live.Graph sets this) that is stopped with Ctrl-C
 # while it is still importing exits cleanly (code 0) instead of with a KeyboardInterrupt
-# traceback; spin_node restores the default handler before rclpy takes over.
+# traceback: the signal is only remembered (raising inside an import can break it: an
+# interrupted C-extension import of NumPy fails with ImportError), and spin_node returns 0 before
+# starting rclpy; it restores the default handler before rclpy takes over.
 LAUNCHED_ENV = 'NRSFM_NODE_PROCESS'
+STOP_REQUESTED = []         # non-empty once Ctrl-C came during startup
 
 
 def _stop_during_startup(signum: int, frame: object) -> None:
-    raise SystemExit(0)
+    STOP_REQUESTED.append(signum)
 
 
 if os.environ.get(LAUNCHED_ENV) == '1':

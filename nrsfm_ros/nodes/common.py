@@ -211,9 +211,12 @@ class ProcessorNode(Node):
 
 def spin_node(make: Any, args: list[str] | None = None) -> int:
     """The idiomatic main: init, spin, clean shutdown on Ctrl-C or external shutdown."""
-    signal.signal(signal.SIGINT, signal.default_int_handler)   # see nodes/__init__.py
+    from . import STOP_REQUESTED
     node = None
     try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)   # see nodes/__init__.py
+        if STOP_REQUESTED:           # Ctrl-C while importing: stop before starting anything
+            return 0
         rclpy.init(args=args)
         node = make()
         # two threads: a subscription held by a full keep_all queue never stops the timers
@@ -222,6 +225,11 @@ def spin_node(make: Any, args: list[str] | None = None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # Ctrl-C between rclpy.init and a running executor: rclpy's handler shut the context
+        # down and creating the node or its entities fails (RCLError); that is a clean stop
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
