@@ -246,7 +246,7 @@ class SceneFlowParams(Params):
                       'nrsfm: object (camera ego-motion, estimated from the stream, removed) '
                       'in the previous camera\'s axes, or camera (raw difference); msf '
                       'publishes the camera frame (its camera pose is unknown)')
-    window: int = rule(10, _at_least(2), 'nrsfm object frame: clouds (the current one '
+    window: int = rule(5, _at_least(2), 'nrsfm object frame: clouds (the current one '
                        'included) the ego-motion is estimated over')
     iterations: int = rule(8, _at_least(0), 'nrsfm object frame: re-weightings of the '
                            'ego-motion fit (weights from each track\'s spread) on a cold start')
