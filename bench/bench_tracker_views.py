@@ -2,7 +2,8 @@
 runs it (``TrackerParams`` defaults -> ``MFOFTracker``), on rendered ``synth`` sequences.
 
     .venv/bin/python bench/bench_tracker_views.py [--surfaces face,sphere,flag]
-        [--motions 12,30,60] [--size 256x192] [--frames 60] [--methods mfof,chain]
+        [--motions 12,30,60] [--amplitudes 1] [--size 256x192] [--frames 60]
+        [--methods mfof,chain]
         [--set recapture_margin=0 ...] [--json out.json]
 
 Per case (seed 0) and method, over the first reference's track ids (= ground-truth ids, y*W+x):
@@ -134,7 +135,8 @@ def run_case(cfg: SynthConfig, methods: list[str], overrides: dict | None = None
                                             cfg.width)
         else:
             raise ValueError(f'method {m!r}: expected mfof or chain')
-        rows.append({'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg, 'method': m,
+        rows.append({'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
+                     'amplitude': cfg.amplitude, 'method': m,
                      'ms_per_frame': ms, 'reselections': int(nres), **gt,
                      **evaluate(W, V, ids, seq)})
         print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v)
@@ -146,6 +148,8 @@ def main() -> None:
     p = parser(__doc__)
     p.add_argument('--surfaces', default='face,sphere,flag')
     p.add_argument('--motions', default='12,30,60')
+    p.add_argument('--amplitudes', default='1',
+                   help='deformation amplitude multipliers (SynthConfig.amplitude)')
     p.add_argument('--size', default='256x192')
     p.add_argument('--frames', type=int, default=60)
     p.add_argument('--methods', default='mfof,chain')
@@ -165,13 +169,14 @@ def main() -> None:
     rows = []
     for surface in a.surfaces.split(','):
         for motion in (float(v) for v in a.motions.split(',')):
-            cfg = SynthConfig(surface=surface, width=w, height=h, frames=a.frames, seed=0,
-                              camera_motion_deg=motion)
-            rows += run_case(cfg, a.methods.split(','), overrides)
-    table(['surface', 'cam deg', 'method', 'err mean (px)', 'median', 'p90',
+            for amp in (float(v) for v in a.amplitudes.split(',')):
+                cfg = SynthConfig(surface=surface, width=w, height=h, frames=a.frames, seed=0,
+                                  camera_motion_deg=motion, amplitude=amp)
+                rows += run_case(cfg, a.methods.split(','), overrides)
+    table(['surface', 'cam deg', 'amp', 'method', 'err mean (px)', 'median', 'p90',
            'bands 1/3, 2/3, 3/3', 'err kept', 'kept', 'rigid/static', 'rigid/static (GT)',
            'reselections', 'ms / frame'],
-          [[r['surface'], f"{r['motion_deg']:g}", r['method'], f"{r['err_mean']:.2f}",
+          [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", r['method'], f"{r['err_mean']:.2f}",
             f"{r['err_median']:.2f}", f"{r['err_p90']:.2f}",
             ', '.join(f'{v:.2f}' for v in r['err_bands']), f"{r['err_kept']:.2f}",
             f"{r['kept']:.3f}", f"{r['rigid_static']:.2f}", f"{r['rigid_static_gt']:.2f}",
