@@ -266,7 +266,15 @@ class StreamNRSfM:
             res = solve(W, V)
         else:
             weak = solve(W, V)
-            res = perspective_solve(solve, W, V, *self._intrinsics, weak=weak)
+            # auto decides once, on the measured tracks: the corrected ones re-tested could flip
+            # a flat-at-rest surface to bmm (sheet 60 deg amplitude 2: rest ratio 0.077 -> 0.085
+            # against 0.08, e3D 0.10 -> 0.25)
+            method = weak.method if self.method == 'auto' and weak.method in ('planar', 'bmm') \
+                else self.method
+
+            def solve_fixed(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+                return self._solver(W, V, method, self.rank)
+            res = perspective_solve(solve_fixed, W, V, *self._intrinsics, weak=weak)
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method
