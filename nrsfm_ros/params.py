@@ -114,6 +114,9 @@ class TrackerParams(Params):
                                    'itself, seeded by the prediction, replaces the residual flow '
                                    'where its local 1 - ZNCC is lower by this much (lost tracks '
                                    'found again on foreshortened views; 0: off)')
+    predict_offset: bool = rule(True, None, 'mfof: the data step starts each pixel at its own '
+                                'last position moved by the subspace (off: the smooth subspace '
+                                'prediction alone; strong deformation is lost on fast folds)')
     outlier_px: float = rule(3.0, _non_negative, 'mfof: data further than this from the '
                              'subspace loses weight (0: off)')
     reselect_fraction: float = rule(0.35, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
