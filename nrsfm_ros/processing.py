@@ -331,6 +331,7 @@ class ReconstructorProcessor(Processor):
     def _reset(self) -> None:
         p = self.params
         self.stream = make_stream(p)
+        self._apply_intrinsics()
         self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
         self._rgb: dict[int, float] = {}
 
@@ -359,7 +360,14 @@ class ReconstructorProcessor(Processor):
         self.K = img_io.camera_info_K(msg)
         w, h = int(msg.width), int(msg.height)
         self.image_size = (h, w) if w > 0 and h > 0 else None
+        self._apply_intrinsics()
         return []
+
+    def _apply_intrinsics(self) -> None:
+        """The perspective refinement needs the true intrinsics (CameraInfo's, never the
+        focal_length_px fallback, which has no principal point)."""
+        if self.K is not None:
+            self.stream.set_intrinsics(float(self.K[0, 0]), self.K[:2, 2])
 
     def _intrinsics(self) -> np.ndarray | None:
         if self.K is not None:
@@ -382,8 +390,6 @@ class ReconstructorProcessor(Processor):
             raise MessageError('u/v', 'non-finite', 'fewer than 4 finite track positions')
         vis = np.where(finite, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
         uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
-        if self.K is not None:          # the perspective refinement needs the true intrinsics
-            self.stream.set_intrinsics(float(self.K[0, 0]), self.K[:2, 2])
         index = self.stream.frames_seen
         self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
         for i, c in zip(ids.tolist(), rgb.tolist()):   # a track keeps its first colour

@@ -60,6 +60,16 @@ def _aligned(res: NRSfMResult, z_prev: np.ndarray) -> NRSfMResult:
     return _flipped(res) if float((z * z_prev).sum()) < 0 else res
 
 
+def check_intrinsics(focal: float, principal: np.ndarray) -> tuple[float, np.ndarray]:
+    """Validated focal length (px) and principal point (cx, cy)."""
+    principal = np.asarray(principal, dtype=np.float64).reshape(-1)
+    if not (np.isfinite(focal) and focal > 0):
+        raise ValueError(f'focal: expected a finite focal length > 0 px, got {focal}')
+    if principal.shape != (2,) or not np.isfinite(principal).all():
+        raise ValueError(f'principal: expected a finite (cx, cy), got {principal}')
+    return float(focal), principal
+
+
 def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W: np.ndarray,
                       V: np.ndarray, focal: float, principal: np.ndarray,
                       iterations: int = 1, weak: NRSfMResult | None = None) -> NRSfMResult:
@@ -67,11 +77,7 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
     module docstring.  ``iterations`` corrections after the reflection is chosen (>= 1, each one
     solve; the choice costs two); ``weak``: ``solve(W, V)`` if already computed.  Returns
     ``weak`` itself when the perspective model does not explain the tracks better."""
-    if not focal > 0 or not np.isfinite(focal):
-        raise ValueError(f'focal: expected a finite focal length > 0 px, got {focal}')
-    principal = np.asarray(principal, dtype=np.float64)
-    if principal.shape != (2,) or not np.isfinite(principal).all():
-        raise ValueError(f'principal: expected a finite (cx, cy), got {principal}')
+    focal, principal = check_intrinsics(focal, principal)
     if iterations < 1:
         raise ValueError(f'iterations: expected >= 1, got {iterations}')
     F, P = V.shape

@@ -43,7 +43,7 @@ import numpy as np
 
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
-from .perspective import RATIO_RANGE, perspective_solve
+from .perspective import RATIO_RANGE, check_intrinsics, perspective_solve
 from .result import NRSfMResult
 
 MODES = ('window', 'online', 'batch', 'dspr')
@@ -159,12 +159,7 @@ class StreamNRSfM:
 
     def set_intrinsics(self, focal: float, principal: np.ndarray) -> None:
         """Focal length (px) and principal point (cx, cy) of the camera, for ``perspective``."""
-        principal = np.asarray(principal, dtype=np.float64).reshape(-1)
-        if not (np.isfinite(focal) and focal > 0):
-            raise ValueError(f'focal: expected a finite focal length > 0 px, got {focal}')
-        if principal.shape != (2,) or not np.isfinite(principal).all():
-            raise ValueError(f'principal: expected a finite (cx, cy), got {principal}')
-        self._intrinsics = (float(focal), principal)
+        self._intrinsics = check_intrinsics(focal, principal)
 
     # ------------------------------------------------------------------ public
     def push(self, ids: np.ndarray, uv: np.ndarray, visibility: np.ndarray | None = None
