@@ -22,7 +22,8 @@ EXAMPLES = {
              'nrsfm-ros topic hz camera/image_raw',
     'export': 'nrsfm-ros export bags/face_out --out out/face --every 10',
     'evaluate': 'nrsfm-ros evaluate bags/face_out --ground-truth bags/face.npz --plot error.png '
-                '--json eval.json   (bags/face.npz: what synth wrote beside bags/face)',
+                '--json eval.json --render out/face   (bags/face.npz: what synth wrote beside '
+                'bags/face)',
     'track': 'nrsfm-ros track frames/ --out tracks.npz   (a folder of images or a video file)',
     'reconstruct': 'nrsfm-ros reconstruct tracks.npz --method bmm --out shapes.npz',
     'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
@@ -46,7 +47,8 @@ def _parser() -> argparse.ArgumentParser:
                               epilog=f'example: {EXAMPLES[name]}',
                               formatter_class=argparse.RawDescriptionHelpFormatter)
 
-    d = add('demo', 'the main job: live graph on the sample bag, summary, PLY and PNG renders')
+    d = add('demo', 'the main job: live graph on the sample bag, summary, PLY files, 3-D renders '
+            'beside the ground truth with an error heat map, a GIF of the stream')
     d.add_argument('--out', default='out/demo', help='output folder (default out/demo)')
     d.add_argument('--bags', default='bags', help='where the sample bag lives (default bags)')
     d.add_argument('--rate', type=float, default=1.0, help='replay rate (default 1.0)')
@@ -136,6 +138,15 @@ def _parser() -> argparse.ArgumentParser:
                     help='write a PNG of e3D per frame against the baselines over time')
     ev.add_argument('--json', default=None, metavar='FILE',
                     help='write the numbers (and the per-frame e3D) as JSON')
+    ev.add_argument('--render', default=None, metavar='DIR',
+                    help='write perspective 3-D renders to DIR: compare_FFF.png (first, middle, '
+                    'last frame) with the aligned cloud, the ground truth and a per-point error '
+                    'heat map side by side, and a video of every frame')
+    from .render import SHADINGS, VIDEO_FORMATS
+    ev.add_argument('--shading', default=None, choices=SHADINGS,
+                    help='--render: shade the clouds by surface normals (default) or by depth')
+    ev.add_argument('--video', default=None, choices=VIDEO_FORMATS,
+                    help='--render: stream.gif (default), stream.mp4 or no video')
 
     tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
     tr.add_argument('frames')
@@ -265,7 +276,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     table = format_summary(summary, live)
     write_summary(out, summary, table)
     print(table)
-    print(f'outputs: {out_bag} (bag), {out}/summary.md, {out}/summary.json, PLY and PNG in {out}')
+    print(f'outputs: {out_bag} (bag), {out}/summary.md, {out}/summary.json, PLY files, '
+          f'compare_FFF.png renders and stream.gif in {out}')
     missing = [t for t in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
                            'scene_flow/points') if summary['outputs'].get(t, 0) < seq.S.shape[0]]
     if live.get('graph_exit'):
@@ -616,6 +628,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     bag, gt = Path(args.bag), Path(args.ground_truth)
     info = bag_info(bag)                # a missing or foreign bag: one error line naming it
     seq = load_ground_truth(gt)
+    if (args.shading or args.video) and not args.render:
+        raise CliError('--shading and --video shape the renders of --render DIR: give --render')
     if args.plot:
         try:
             import matplotlib  # noqa: F401
@@ -647,6 +661,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.plot:
         plot_errors(r, seq, args.plot, title=f'{bag.name} against {gt.name}')
         print(f'wrote {args.plot}')
+    if args.render:
+        from .render import render_stream
+        rr = render_stream(out.clouds, seq.S, seq.track_ids, args.render,
+                           shading=args.shading or 'normals', video=args.video or 'gif',
+                           fps=seq.config.fps, min_points=MIN_POINTS)
+        print(f'wrote {len(rr.stills)} render(s) to {args.render}'
+              + (f' and {rr.video} ({rr.frames} frames)' if rr.video else '')
+              + f'; heat map 0..{rr.vmax:.3g} x RMS radius, {rr.seconds_per_frame:.2f} s/frame')
     if out.damage:
         raise CliError(out.damage[0])
     return 0

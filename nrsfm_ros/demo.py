@@ -3,7 +3,8 @@
 Generates (or reuses) the sample bag in bags/, starts the live graph as separate processes,
 replays the bag into it, records every output topic, then writes a summary (frames in/out,
 reconstruction e3D against ground truth, registration and scene-flow errors, per-node latency),
-PLY files and PNG renders under the output folder.
+PLY files, perspective renders beside the ground truth with an error heat map, and a GIF of the
+stream under the output folder.
 """
 from __future__ import annotations
 
@@ -15,11 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from .evaluation import evaluate_outputs, read_outputs
-from .io.export import render_png, write_ply
+from .evaluation import MIN_POINTS, evaluate_outputs, read_outputs
+from .io.export import write_ply
 from .io.sequence_bag import write_sequence_bag
 from .io.synth import SynthConfig, SynthSequence, generate
 from .processing import TOPICS
+from .render import render_stream
 
 OUTPUTS = {TOPICS[k]: t for k, t in [
     ('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image'),
@@ -113,20 +115,21 @@ def run_live(bag: Path, out_bag: Path, frames: int, rate: float, timeout: float,
 
 def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any]:
     """Accuracy and latency of the recorded outputs against the ground truth
-    (``evaluation.evaluate_outputs``, what ``nrsfm-ros evaluate`` prints), and PLY/PNG renders
-    of the first, middle and last cloud."""
+    (``evaluation.evaluate_outputs``, what ``nrsfm-ros evaluate`` prints), PLY files of the
+    first, middle and last cloud, and the renders of ``nrsfm-ros evaluate --render``
+    (``render.render_stream``: compare_FFF.png of those frames and stream.gif)."""
     out = read_outputs(out_bag, seq, colours=True)
     summary = {k: v for k, v in evaluate_outputs(out, seq).items()
                if not k.startswith('per_frame')}
     if out.clouds:
         out_dir.mkdir(parents=True, exist_ok=True)
         frames = sorted(out.clouds)
-        for f in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
-            X, rgb = out.clouds[f][0], out.colours[f]
-            write_ply(out_dir / f'points_{f:03d}.ply', X, rgb)
-            render_png(out_dir / f'points_{f:03d}.png', X, rgb)
-            render_png(out_dir / f'depth_{f:03d}.png', X)
-            render_png(out_dir / f'ground_truth_{f:03d}.png', seq.S[f])
+        stills = sorted({frames[0], frames[len(frames) // 2], frames[-1]})
+        for f in stills:
+            write_ply(out_dir / f'points_{f:03d}.ply', out.clouds[f][0], out.colours[f])
+        rr = render_stream(out.clouds, seq.S, seq.track_ids, out_dir, fps=seq.config.fps,
+                           stills=stills, min_points=MIN_POINTS)
+        summary['renders'] = [str(p) for p in rr.stills] + ([str(rr.video)] if rr.video else [])
     summary['latency_ms'] = out.latency
     return summary
 

@@ -135,6 +135,59 @@ def frame_e3d(X: np.ndarray, X_gt: np.ndarray, scale: bool = True) -> float:
     return e3d_frobenius(X[None], X_gt[None], 'frame', scale=scale)
 
 
+@dataclass(frozen=True)
+class FrameAlignment:
+    """The similarity metric B fits for one frame (``frame_e3d``): ``apply(Y)`` maps points of
+    the reconstruction's frame into the ground truth's, ``(Y - mean) @ R * s + mean_gt``
+    (R orthogonal, reflection allowed; s = 1 without scale)."""
+
+    R: np.ndarray
+    s: float
+    mean: np.ndarray
+    mean_gt: np.ndarray
+
+    def apply(self, Y: np.ndarray) -> np.ndarray:
+        return (np.asarray(Y, dtype=np.float64) - self.mean) @ self.R * self.s + self.mean_gt
+
+
+def frame_alignment(X: np.ndarray, X_gt: np.ndarray, scale: bool = True) -> FrameAlignment:
+    """The alignment of X (P, 3) onto X_gt (P, 3) that ``frame_e3d`` scores after: centring,
+    orthogonal Procrustes (reflection allowed) and, with ``scale``, the least-squares scale."""
+    X = np.asarray(X, dtype=np.float64)
+    X_gt = np.asarray(X_gt, dtype=np.float64)
+    if X.shape != X_gt.shape or X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f'X: expected shape (P, 3) equal to X_gt {X_gt.shape}, got {X.shape}')
+    mean, mean_gt = X.mean(axis=0), X_gt.mean(axis=0)
+    A, B = X - mean, X_gt - mean_gt
+    U, sig, Vt = np.linalg.svd(A.T @ B)
+    s = float(sig.sum() / max(np.sum(A * A), 1e-300)) if scale else 1.0
+    return FrameAlignment(U @ Vt, s, mean, mean_gt)
+
+
+def point_errors(X: np.ndarray, X_gt: np.ndarray, scale: bool = True) -> np.ndarray:
+    """Per-point error (P,) of X against X_gt (P, 3) after ``frame_alignment``: the distance
+    divided by the RMS radius of X_gt about its centroid, so that the RMS of the errors is the
+    frame's metric B (``frame_e3d(X, X_gt, scale)``)."""
+    X_gt = np.asarray(X_gt, dtype=np.float64)
+    d = np.linalg.norm(frame_alignment(X, X_gt, scale).apply(X) - X_gt, axis=1)
+    rms = np.sqrt(np.mean(np.sum((X_gt - X_gt.mean(axis=0)) ** 2, axis=1)))
+    return d / max(float(rms), 1e-300)
+
+
+def match_ids(ids: np.ndarray, gt_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points matched by track id: ``ok`` (n,) True where ``ids`` is one of ``gt_ids`` (P,),
+    and ``cols`` (ok.sum(),) the ground-truth column of each matched point."""
+    gt_ids = np.asarray(gt_ids).astype(np.int64)
+    ids = np.asarray(ids).astype(np.int64)
+    order = np.argsort(gt_ids)
+    sorted_ids = gt_ids[order]
+    if sorted_ids.size == 0:
+        return np.zeros(ids.shape, bool), np.zeros(0, np.int64)
+    pos = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
+    ok = sorted_ids[pos] == ids
+    return ok, order[pos[ok]]
+
+
 def flat_shape(X: np.ndarray) -> np.ndarray:
     """The points X (P, 3) projected onto their least-squares plane (the flat baseline)."""
     X = np.asarray(X, dtype=np.float64)
@@ -182,8 +235,6 @@ def score_stream(clouds: dict[int, tuple[np.ndarray, np.ndarray]], gt_ids: np.nd
     gt_ids = np.asarray(gt_ids).astype(np.int64)
     if gt_ids.shape != (S_gt.shape[1],):
         raise ValueError(f'gt_ids: expected shape ({S_gt.shape[1]},), got {gt_ids.shape}')
-    order = np.argsort(gt_ids)
-    sorted_ids = gt_ids[order]
     flat0 = flat_shape(S_gt[0])
     e3d, static, flat = (np.full(F, np.nan) for _ in range(3))
     matched = np.zeros(F, np.int64)
@@ -193,15 +244,15 @@ def score_stream(clouds: dict[int, tuple[np.ndarray, np.ndarray]], gt_ids: np.nd
             unscored.append(f)
             continue
         X, ids = clouds[f]
-        ids = np.asarray(ids).astype(np.int64)
-        pos = np.clip(np.searchsorted(sorted_ids, ids), 0, sorted_ids.size - 1)
-        ok = (sorted_ids[pos] == ids) & np.isfinite(X).all(axis=1)
-        cols = order[pos[ok]]
+        ok, cols = match_ids(ids, gt_ids)
+        X = np.asarray(X)[ok]
+        finite = np.isfinite(X).all(axis=1)
+        X, cols = X[finite], cols[finite]
         matched[f] = cols.size
         if cols.size < min_points:
             unscored.append(f)
             continue
-        e3d[f] = frame_e3d(X[ok], S_gt[f, cols], scale)
+        e3d[f] = frame_e3d(X, S_gt[f, cols], scale)
         static[f] = frame_e3d(S_gt[0, cols], S_gt[f, cols], scale)
         flat[f] = frame_e3d(flat0[cols], S_gt[f, cols], scale)
     return StreamScore(e3d, static, flat, matched, unscored)
