@@ -18,7 +18,8 @@ setup(
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
                       'PyYAML'],
     extras_require={'plot': ['matplotlib'],      # nrsfm-ros evaluate --plot
-                    'view': ['foxglove-sdk>=0.30.3']},   # nrsfm-ros view
+                    'view': ['foxglove-sdk>=0.30.3'],    # nrsfm-ros view
+                    'ray': ['ray==2.58.0']},              # nrsfm-ros process --ray
     zip_safe=True,
     maintainer='nrsfm_ros maintainers',
     maintainer_email='maintainers@nrsfm-ros.invalid',

@@ -98,7 +98,8 @@ def _parser() -> argparse.ArgumentParser:
                     help='longest wait for subscribers, seconds (default 10)')
 
     pr = add('process', 'run the node pipeline offline over a bag (no DDS); several bags: each '
-             'in its own worker process, one output bag per input under --out')
+             'in its own worker process (or Ray task: --ray), one output bag per input under '
+             '--out')
     pr.add_argument('bag', nargs='+', help='input bag(s)')
     pr.add_argument('--out', required=True,
                     help='output bag folder; with several bags the folder that gets one output '
@@ -110,8 +111,16 @@ def _parser() -> argparse.ArgumentParser:
     pr.add_argument('--report', default=None,
                     help='report JSON: per-frame errors and per-stage timing (several bags: '
                     'the combined report, default OUT/report.json)')
-    pr.add_argument('--jobs', type=int, default=1, metavar='N',
-                    help='several bags: worker processes (default 1)')
+    pr.add_argument('--jobs', type=int, default=None, metavar='N',
+                    help='several bags: worker processes (default 1); with --ray: the local Ray '
+                    "instance's CPUs (default: all cores) or, on a cluster, the most bags at a "
+                    'time')
+    pr.add_argument('--ray', nargs='?', const='', default=None, metavar='ADDRESS',
+                    help='run the bags as Ray tasks (pip install nrsfm_ros[ray]): without '
+                    'ADDRESS on a private local Ray instance bound to 127.0.0.1, with one '
+                    '(HOST:PORT of the head, or auto) on that cluster; --out is then a folder '
+                    'of output bags even for one bag.  Put it after the bags or write '
+                    '--ray=ADDRESS')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
     pr.add_argument('--no-progress', action='store_true')
 
@@ -450,10 +459,13 @@ def cmd_process(args: argparse.Namespace) -> int:
     bad = [s for s in stages if s not in STAGES]
     if bad:
         raise CliError(f'--pipeline: unknown stage(s) {bad}; expected from {", ".join(STAGES)}')
-    if args.jobs < 1:
+    if args.jobs is not None and args.jobs < 1:
         raise CliError(f'--jobs {args.jobs}: expected >= 1')
+    if args.ray and Path(args.ray).exists():
+        raise CliError(f'--ray {args.ray}: that is a path, not a Ray address; put --ray after '
+                       'the bags or write --ray=HOST:PORT')
     params = load_params(args.params)
-    if len(args.bag) > 1:
+    if len(args.bag) > 1 or args.ray is not None:
         return _process_many(args, stages, params)
     bag = args.bag[0]
     bag_info(bag)               # not a bag: one error line before anything is written
@@ -503,8 +515,8 @@ def format_timing(d: dict[str, Any]) -> list[str]:
 
 
 def _process_many(args: argparse.Namespace, stages: list[str], params: Any) -> int:
-    """``process BAG BAG ... --out DIR --jobs N``: one worker process per bag."""
-    from .fleet import output_paths, process_bags, write_fleet_report
+    """``process BAG BAG ... --out DIR --jobs N``: one worker process per bag (or Ray task)."""
+    from .fleet import RayUnavailableError, output_paths, process_bags, write_fleet_report
     try:
         output_paths(args.bag, args.out)
     except ValueError as err:
@@ -524,12 +536,20 @@ def _process_many(args: argparse.Namespace, stages: list[str], params: Any) -> i
             f"{entry['failures']} failure(s), {entry['seconds']:.2f} s"
         print(f"[{done[0]}/{total}] {entry['bag']}: {entry['status']}: {what}", flush=True)
 
-    fleet = process_bags(args.bag, args.out, stages, params, jobs=args.jobs,
-                         copy_inputs=args.copy_inputs, on_done=on_done)
+    try:
+        fleet = process_bags(args.bag, args.out, stages, params, jobs=args.jobs,
+                             copy_inputs=args.copy_inputs, on_done=on_done, ray=args.ray)
+    except RayUnavailableError as err:
+        raise CliError(f'--ray: {err}') from err
     write_fleet_report(fleet, report_path)
     d = fleet.as_dict()
     tot, thr = d['total'], d['throughput']
-    print(f"{tot['bags']} bag(s) on {d['jobs']} worker(s) in {d['wall_s']} s: {tot['ok']} ok, "
+    where = ''
+    if 'ray' in d:
+        r = d['ray']
+        where = f" (Ray {r['address']}: {len(r['nodes'])} node(s), {r['cpus']:g} CPU(s))"
+    print(f"{tot['bags']} bag(s) on {d['jobs']} worker(s){where} in {d['wall_s']} s: "
+          f"{tot['ok']} ok, "
           f"{tot['frame_failures']} with frame failures, {tot['failed']} failed; "
           f"{tot['frames_in']} frames in, {tot['frames_out']} out; "
           f"{thr['frames_per_s']} frames/s, {thr['bags_per_s']} bags/s "

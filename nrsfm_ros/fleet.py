@@ -9,15 +9,23 @@ the parallelism is the workers.  Measured on 4 synthetic bags (bench/bench_fleet
 cores): a worker with 2 BLAS/OpenCV threads spent 7x the CPU time of a single-threaded one on
 the same bags (22 s against 3 s), most of it in the reconstructor's solves.
 
+``process_bags(..., ray='')`` runs the same jobs as Ray tasks instead (one task per bag, one CPU
+each): ``''`` starts a private Ray instance on this machine bound to 127.0.0.1 only (no
+dashboard, no usage statistics, a small object store), an address (``HOST:PORT``, ``auto``)
+connects to a running cluster whose nodes have this package installed.  The report is the same;
+a task whose worker dies fails its bag alone (no retries: a bag that kills its worker would kill
+the next one too).  Ray is an optional extra (``pip install nrsfm_ros[ray]``).
+
 This module imports nothing heavy at the top: a spawned worker loads what it needs.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -47,11 +55,15 @@ class BagJob:
 
 @dataclass
 class FleetReport:
-    """The combined report: one entry per bag (input order), wall time and throughput."""
+    """The combined report: one entry per bag (input order), wall time and throughput.
+    ``engine``: 'processes' (a local process pool) or 'ray'; ``ray``: the cluster it ran on
+    (address, nodes' IPs, CPUs, seconds to start or connect)."""
 
     jobs: int
     bags: list[dict[str, Any]] = field(default_factory=list)
     wall_s: float = 0.0
+    engine: str = 'processes'
+    ray: dict[str, Any] | None = None
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -68,8 +80,8 @@ class FleetReport:
         frames_out = sum(b['frames_out'] for b in self.bags)
         messages = sum(b['messages_in'] for b in self.bags)
         wall = self.wall_s
-        return {
-            'jobs': self.jobs, 'wall_s': round(wall, 3),
+        out: dict[str, Any] = {
+            'jobs': self.jobs, 'engine': self.engine, 'wall_s': round(wall, 3),
             'total': {'bags': len(self.bags), 'ok': sum(b['status'] == 'ok' for b in self.bags),
                       'frame_failures': sum(b['status'] == 'frame failures'
                                             for b in self.bags),
@@ -82,6 +94,9 @@ class FleetReport:
                            'messages_per_s': round(messages / wall, 1) if wall else None},
             'bags': self.bags,
         }
+        if self.ray is not None:
+            out['ray'] = self.ray
+        return out
 
 
 def output_paths(bags: Sequence[str | Path], out_dir: str | Path) -> list[Path]:
@@ -191,48 +206,62 @@ def _run_pool(jobs: Sequence[BagJob], workers: int, threads: int, worker: Worker
 
 
 def process_bags(bags: Sequence[str | Path], out_dir: str | Path, stages: Sequence[str],
-                 params: Mapping[str, Any] | None = None, jobs: int = 1,
+                 params: Mapping[str, Any] | None = None, jobs: int | None = None,
                  copy_inputs: bool = False,
                  on_done: Callable[[dict[str, Any]], None] | None = None,
-                 worker: Worker = run_job, threads: int | None = None) -> FleetReport:
-    """Process each bag into ``out_dir/<its name>`` on ``jobs`` worker processes.
+                 worker: Worker = run_job, threads: int | None = None,
+                 ray: str | None = None) -> FleetReport:
+    """Process each bag into ``out_dir/<its name>`` on ``jobs`` worker processes (default 1),
+    or, with ``ray`` set, as Ray tasks (see :func:`ray_session`: ``''`` a private local
+    instance with ``jobs`` CPUs, default all cores; an address: that cluster, at most ``jobs``
+    bags at a time when given).
 
-    ``on_done(entry)`` is called in this process as each bag finishes.  When a worker dies
+    ``on_done(entry)`` is called in this process as each bag finishes.  When a pool worker dies
     (BrokenProcessPool), the bags it took down are run again one per fresh pool, so only the
-    bag that kills its worker is reported as failed.  ``worker`` (a module-level function, it
-    is pickled to the workers) processes one :class:`BagJob`; tests replace it.  ``threads``:
-    each worker's OpenCV threads and, unless the environment sets them, its OpenMP/OpenBLAS
-    threads (default 1, see the module notes)."""
-    if jobs < 1:
+    bag that kills its worker is reported as failed; a Ray task is never retried and a dead
+    Ray worker fails its own bag only.  ``worker`` (a module-level function, it is pickled to
+    the workers) processes one :class:`BagJob`; tests replace it.  ``threads``: each worker's
+    OpenCV threads and, unless the environment sets them, its OpenMP/OpenBLAS threads (default
+    1, see the module notes)."""
+    if jobs is not None and jobs < 1:
         raise ValueError(f'--jobs {jobs}: expected >= 1')
     if not bags:
         raise ValueError('no input bag given')
-    outs = output_paths(bags, out_dir)
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    todo = [BagJob(i, str(b), str(o), tuple(stages), params, copy_inputs)
-            for i, (b, o) in enumerate(zip(bags, outs))]
-    workers = min(jobs, len(todo))
     if threads is None:
         threads = 1
     elif threads < 1:
         raise ValueError(f'threads={threads}: expected >= 1')
-    report = FleetReport(jobs=workers)
+    outs = output_paths(bags, out_dir)
+    todo = [BagJob(i, str(b), str(o), tuple(stages), params, copy_inputs)
+            for i, (b, o) in enumerate(zip(bags, outs))]
     results: dict[int, dict[str, Any]] = {}
     saved = {v: os.environ.get(v) for v in THREAD_VARS}
     t0 = time.perf_counter()
     try:
         for v in THREAD_VARS:     # inherited by the spawned workers (a value set wins)
             os.environ.setdefault(v, str(threads))
-        lost = _run_pool(todo, workers, threads, worker, on_done, results)
-        for job in lost:          # isolate: the bag that kills a worker alone fails
-            if Path(job.out).exists():      # its partial output (checked absent up front)
-                shutil.rmtree(job.out)
-            again = _run_pool([job], 1, threads, worker, on_done, results)
-            if again:
-                entry = _crashed(job, BrokenProcessPool('a worker process died abruptly'))
-                results[job.index] = entry
-                if on_done is not None:
-                    on_done(entry)
+        if ray is not None:
+            with ray_session(ray, num_cpus=jobs) as info:
+                Path(out_dir).mkdir(parents=True, exist_ok=True)
+                limit = len(todo) if jobs is None or ray == '' else jobs
+                workers = min(limit, max(1, int(info['cpus'])), len(todo))
+                _run_ray(todo, workers, threads, worker, on_done, results,
+                         remote_env=bool(ray) and not info['reused'])
+            report = FleetReport(jobs=workers, engine='ray', ray=info)
+        else:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            workers = min(jobs or 1, len(todo))
+            report = FleetReport(jobs=workers)
+            lost = _run_pool(todo, workers, threads, worker, on_done, results)
+            for job in lost:          # isolate: the bag that kills a worker alone fails
+                if Path(job.out).exists():      # its partial output (checked absent up front)
+                    shutil.rmtree(job.out)
+                again = _run_pool([job], 1, threads, worker, on_done, results)
+                if again:
+                    entry = _crashed(job, BrokenProcessPool('a worker process died abruptly'))
+                    results[job.index] = entry
+                    if on_done is not None:
+                        on_done(entry)
     finally:
         for v, value in saved.items():
             if value is None:
@@ -242,6 +271,184 @@ def process_bags(bags: Sequence[str | Path], out_dir: str | Path, stages: Sequen
     report.wall_s = time.perf_counter() - t0
     report.bags = [results[j.index] for j in todo]
     return report
+
+
+# ------------------------------------------------------------------ Ray
+
+RAY_OBJECT_STORE_BYTES = 80 * 2 ** 20     # Ray's minimum is 75 MiB; the jobs pass only paths
+RAY_INSTALL_HINT = "pip install 'nrsfm_ros[ray]' (Ray 2.58.0)"
+
+
+class RayUnavailableError(RuntimeError):
+    """Ray is not installed, or the cluster cannot be started or reached."""
+
+
+RAY_CLUSTER_ENV = 'RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER'
+
+
+def _import_ray() -> Any:
+    os.environ['RAY_USAGE_STATS_ENABLED'] = '0'
+    try:
+        import ray
+        from ray._private import ray_constants  # noqa: F401 -- checked here, used later
+    except ImportError as err:
+        raise RayUnavailableError(f'Ray is not installed: {RAY_INSTALL_HINT}') from err
+    return ray
+
+
+@contextlib.contextmanager
+def _loopback_nodes(local: bool) -> Iterator[None]:
+    """While active (``local``: a private instance, or a head on 127.0.0.1), Ray keeps the
+    loopback address (it otherwise swaps 127.0.0.1 for this machine's address, in a head's
+    address too), so new Ray nodes of this process get the loopback address: with
+    ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER`` off (read once, when Ray is imported; set on the
+    module as well) Ray gives a node 127.0.0.1, and its gRPC servers, object manager and agents
+    bind there only, instead of this machine's first non-loopback address.  Restores Ray's own
+    setting on exit (a later session may join a cluster by address)."""
+    if not local:
+        yield
+        return
+    before = os.environ.get(RAY_CLUSTER_ENV)
+    os.environ[RAY_CLUSTER_ENV] = '0'
+    from ray._private import ray_constants
+    own = before.lower() in ('1', 'true') if before is not None else \
+        not ray_constants.IS_WINDOWS_OR_OSX
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = own
+        if before is None:
+            os.environ.pop(RAY_CLUSTER_ENV, None)
+        else:
+            os.environ[RAY_CLUSTER_ENV] = before
+
+
+LOOPBACK_HOSTS = ('', '127.0.0.1', 'localhost', '::1')
+
+
+def _split_address(address: str) -> tuple[str, int | None]:
+    """(host, port) of ``HOST:PORT``; ('', None) for a local instance; (address, None) for
+    one Ray resolves itself (``auto``, ``ray://...``)."""
+    if not address:
+        return '', None
+    if address == 'auto' or '://' in address:
+        return address, None
+    host, sep, port = address.rpartition(':')
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f'--ray {address}: expected HOST:PORT of the Ray head (e.g. '
+                         '10.0.0.5:6379) or auto')
+    return host.strip('[]'), int(port)
+
+
+def _probe(host: str, port: int | None, address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast when nothing listens at the head's address (Ray itself retries for minutes)."""
+    if port is None:
+        return
+    import socket
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as err:
+        raise RayUnavailableError(f'could not connect to the Ray cluster at {address}: '
+                                  f'{_error_line(err)}') from err
+
+
+def _cluster_info(ray: Any, address: str, started_s: float, reused: bool) -> dict[str, Any]:
+    nodes = [n for n in ray.nodes() if n.get('Alive')]
+    return {'address': address or 'local', 'reused': reused,
+            'nodes': sorted(n['NodeManagerAddress'] for n in nodes),
+            'cpus': ray.cluster_resources().get('CPU', 0.0),
+            'start_s': round(started_s, 3)}
+
+
+@contextlib.contextmanager
+def ray_session(address: str = '', num_cpus: int | None = None) -> Iterator[dict[str, Any]]:
+    """Ray for one fleet run; yields the cluster's info (address, nodes, CPUs, start_s).
+
+    ``address=''``: start a private Ray instance on this machine with ``num_cpus`` CPUs
+    (default: all cores), bound to 127.0.0.1, without dashboard or usage statistics and with
+    an object store of :data:`RAY_OBJECT_STORE_BYTES`; it stops on exit.  Otherwise connect to
+    the cluster at ``address`` (``HOST:PORT`` of its head, or ``auto``) and disconnect on
+    exit.  When this process is already connected to Ray, that connection is used and left
+    open.  Raises :class:`RayUnavailableError` when Ray is missing or cannot start/connect."""
+    if num_cpus is not None and num_cpus < 1:
+        raise ValueError(f'num_cpus={num_cpus}: expected >= 1')
+    host, port = _split_address(address)
+    ray = _import_ray()
+    if ray.is_initialized():
+        yield _cluster_info(ray, address, 0.0, reused=True)
+        return
+    import logging
+    t0 = time.perf_counter()
+    kwargs: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False,
+                                  configure_logging=True, logging_level=logging.WARNING)
+    _probe(host, port, address)
+    with _loopback_nodes(local=host in LOOPBACK_HOSTS):
+        try:
+            if address:
+                ray.init(address=address, **kwargs)
+            else:
+                ray.init(address='local', num_cpus=num_cpus or os.cpu_count() or 1,
+                         object_store_memory=RAY_OBJECT_STORE_BYTES,
+                         _node_ip_address='127.0.0.1', **kwargs)
+        except Exception as err:  # noqa: BLE001 -- Ray raises many kinds (ConnectionError..)
+            where = f'connect to the Ray cluster at {address}' if address else \
+                'start a local Ray instance'
+            raise RayUnavailableError(f'could not {where}: {_error_line(err)}') from err
+        try:
+            info = _cluster_info(ray, address, time.perf_counter() - t0, reused=False)
+            if not address and info['nodes'] != ['127.0.0.1']:
+                raise RayUnavailableError(f'the local Ray instance took address(es) '
+                                          f'{info["nodes"]}, not 127.0.0.1; not using it')
+            yield info
+        finally:
+            ray.shutdown()
+
+
+def _ray_task(job: BagJob, threads: int, worker: Worker) -> dict[str, Any]:
+    """One bag in a Ray worker (a long-lived process: OpenCV's thread count is set per task)."""
+    _init_worker(threads)
+    return worker(job)
+
+
+def _failed(job: BagJob, error: str) -> dict[str, Any]:
+    entry = _crashed(job, RuntimeError())
+    entry['error'] = error
+    return entry
+
+
+def _run_ray(jobs: Sequence[BagJob], limit: int, threads: int, worker: Worker,
+             on_done: Callable[[dict[str, Any]], None] | None,
+             results: dict[int, dict[str, Any]], remote_env: bool) -> None:
+    """Run ``jobs`` as Ray tasks (one CPU each, no retries), at most ``limit`` at a time.
+    ``remote_env``: the workers were not started from this process's environment (a cluster
+    joined by address), so the thread variables travel in the task's runtime_env."""
+    import ray
+    from ray.exceptions import RayTaskError
+    options: dict[str, Any] = {'num_cpus': 1, 'max_retries': 0}
+    if remote_env:
+        options['runtime_env'] = {'env_vars': {v: os.environ[v] for v in THREAD_VARS}}
+    task = ray.remote(_ray_task).options(**options)
+    queue = list(jobs)
+    pending: dict[Any, BagJob] = {}
+    while queue or pending:
+        while queue and len(pending) < limit:
+            job = queue.pop(0)
+            pending[task.remote(job, threads, worker)] = job
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        for ref in ready:
+            job = pending.pop(ref)
+            try:
+                entry = ray.get(ref)
+            except RayTaskError as err:        # the worker function raised
+                cause = err.cause if getattr(err, 'cause', None) is not None else err
+                entry = _failed(job, f'task raised {_error_line(cause)}')
+            except ray.exceptions.RayError as err:    # the worker process died, ...
+                entry = _failed(job, f'worker process died ({type(err).__name__})')
+            results[job.index] = entry
+            if on_done is not None:
+                on_done(entry)
 
 
 def write_fleet_report(report: FleetReport, path: str | Path) -> None:

@@ -187,3 +187,181 @@ def test_node_diagnostics_time_each_input_kind_and_publishing(rclpy_context):
         node.publish_diagnostics()                    # the node's own 1 Hz path
     finally:
         node.destroy_node()
+
+
+# ------------------------------------------------------------------ --ray (optional extra)
+
+def _tcp_listeners_of_ray() -> list[tuple[str, str]]:
+    """(process, local address) of every listening TCP socket of a Ray process on this machine
+    (raylet, gcs_server, ray::* workers and agents, Ray's Python services)."""
+    inodes: dict[str, str] = {}
+    for proc in Path('/proc').iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            cmd = (proc / 'cmdline').read_bytes().replace(b'\0', b' ').decode(errors='replace')
+            if 'ray' not in cmd:
+                continue
+            for fd in (proc / 'fd').iterdir():
+                link = os.readlink(fd)
+                if link.startswith('socket:['):
+                    inodes[link[8:-1]] = cmd.split(' ')[0]
+        except OSError:
+            continue
+    out = []
+    for table in ('/proc/net/tcp', '/proc/net/tcp6'):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == '0A' and f[9] in inodes:          # LISTEN
+                out.append((inodes[f[9]], f[1]))
+    return out
+
+
+def _is_loopback(hex_addr: str) -> bool:
+    ip = hex_addr.split(':')[0]
+    if len(ip) == 8:                                      # IPv4, little-endian 127.x.x.x
+        return ip.endswith('7F')
+    return ip in ('00000000000000000000000001000000',       # ::1
+                  '0000000000000000FFFF00000100007F')       # ::ffff:127.0.0.1
+
+
+@pytest.fixture(scope='module')
+def ray_head():
+    """A Ray head started like a cluster's (ray start --head), on 127.0.0.1 only, 2 CPUs."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+    pytest.importorskip('ray')
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER='0', RAY_USAGE_STATS_ENABLED='0')
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'ray.scripts.scripts', 'start', '--head', '--block',
+         '--node-ip-address=127.0.0.1', f'--port={port}', '--num-cpus=2',
+         '--include-dashboard=false', '--object-store-memory=83886080', '--disable-usage-stats'],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        end = time.monotonic() + 60
+        while True:
+            try:
+                socket.create_connection(('127.0.0.1', port), timeout=1).close()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > end:
+                    pytest.fail(f'ray start --head exited ({proc.returncode}) or timed out')
+                time.sleep(0.2)
+        yield f'127.0.0.1:{port}'
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)      # the head, its raylet, agents and workers
+        proc.wait()
+
+
+SAME = ('status', 'error', 'frames_in', 'frames_out', 'messages_in', 'failures',
+        'first_failures')
+
+
+def test_ray_cluster_report_matches_jobs(bags, ray_head, tmp_path, capsys):
+    """2 good bags + 1 broken on a Ray cluster: the same per-bag report and byte-identical
+    output bags as --jobs 2, the broken bag failed alone, every Ray socket on loopback."""
+    order = ['good0', 'garbage', 'good1']
+    common = ['--pipeline', 'tracker,reconstructor', '--no-progress']
+    args = ['process', *(str(bags[k]) for k in order)]
+    assert main([*args, '--out', str(tmp_path / 'jobs'), '--jobs', '2', *common]) == 2
+    assert main([*args, '--out', str(tmp_path / 'ray'), f'--ray={ray_head}', *common]) == 2
+    stdout = capsys.readouterr().out
+    jobs = json.loads((tmp_path / 'jobs' / 'report.json').read_text())
+    rep = json.loads((tmp_path / 'ray' / 'report.json').read_text())
+    assert jobs['engine'] == 'processes' and 'ray' not in jobs
+    assert rep['engine'] == 'ray' and rep['jobs'] == 2
+    assert rep['ray']['address'] == ray_head and rep['ray']['nodes'] == ['127.0.0.1']
+    assert rep['ray']['cpus'] == 2 and not rep['ray']['reused']
+    assert [Path(b['bag']).name for b in rep['bags']] == order
+    for a, b in zip(jobs['bags'], rep['bags']):
+        assert {k: a[k] for k in SAME} == {k: b[k] for k in SAME}, a['bag']
+    assert [b['status'] for b in rep['bags']] == ['ok', 'failed', 'ok']
+    assert 'not a bag' in rep['bags'][1]['error']
+    assert rep['total'] == {**jobs['total'], 'worker_s': rep['total']['worker_s'],
+                            'worker_cpu_s': rep['total']['worker_cpu_s']}
+    assert all(b['pid'] != os.getpid() for b in rep['bags'])      # ran in Ray workers
+    for k in ('good0', 'good1'):
+        want = list(read_messages(tmp_path / 'jobs' / k))
+        got = list(read_messages(tmp_path / 'ray' / k))
+        assert len(got) >= 2 * FRAMES and got == want, k             # same bytes
+    assert f'3 bag(s) on 2 worker(s) (Ray {ray_head}: 1 node(s), 2 CPU(s))' in stdout
+    listeners = _tcp_listeners_of_ray()
+    assert listeners and all(_is_loopback(a) for _, a in listeners), listeners
+
+
+def test_ray_local_instance_dead_worker_fails_only_its_bag(bags, tmp_path):
+    """No address: a private Ray instance with --jobs CPUs on 127.0.0.1 (checked while it
+    runs), stopped afterwards; a Ray worker that dies fails its own bag only."""
+    pytest.importorskip('ray')
+    import ray
+    seen: list[list[tuple[str, str]]] = []
+
+    def on_done(entry: dict) -> None:
+        seen.append(_tcp_listeners_of_ray())
+
+    import sys
+    from ray import cloudpickle
+    here = sys.modules[crash_on_good1.__module__]      # Ray workers cannot import test modules
+    cloudpickle.register_pickle_by_value(here)
+    try:
+        rep = process_bags([bags['good0'], bags['good1']], tmp_path / 'o', ['tracker'], jobs=2,
+                           worker=crash_on_good1, on_done=on_done, ray='')
+    finally:
+        cloudpickle.unregister_pickle_by_value(here)
+    d = rep.as_dict()
+    assert d['engine'] == 'ray' and d['ray']['address'] == 'local'
+    assert d['ray']['nodes'] == ['127.0.0.1'] and d['ray']['cpus'] == 2 and d['jobs'] == 2
+    st = {Path(b['bag']).name: b for b in rep.bags}
+    assert st['good1']['status'] == 'failed' and 'worker process died' in st['good1']['error']
+    assert st['good0']['status'] == 'ok' and st['good0']['frames_out'] == FRAMES
+    assert rep.exit_code() == 2 and len(seen) == 2
+    assert all(ls and all(_is_loopback(a) for _, a in ls) for ls in seen), seen
+    assert not ray.is_initialized()                       # the private instance is gone
+    assert os.environ.get('RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER') is None   # restored
+
+
+def test_ray_flag_parses_with_and_without_address(bags):
+    from nrsfm_ros.cli import _parser
+    p = _parser()
+    assert p.parse_args(['process', 'a', 'b', '--out', 'o', '--ray']).ray == ''
+    assert p.parse_args(['process', 'a', '--out', 'o', '--ray=h:1']).ray == 'h:1'
+    assert p.parse_args(['process', 'a', '--out', 'o']).ray is None
+
+
+@pytest.mark.parametrize('case, text', [
+    ('missing', "Ray is not installed: pip install 'nrsfm_ros[ray]'"),
+    ('path', 'that is a path, not a Ray address'),
+    ('malformed', 'expected HOST:PORT of the Ray head'),
+    ('refused', 'could not connect to the Ray cluster at 127.0.0.1:'),
+])
+def test_ray_bad_setup_one_error_line(bags, tmp_path, capsys, monkeypatch, case, text):
+    import socket
+    import sys
+    out = tmp_path / 'o'
+    args = ['process', str(bags['good0']), '--out', str(out), '--pipeline', 'tracker']
+    if case == 'missing':
+        monkeypatch.setitem(sys.modules, 'ray', None)     # import ray -> ImportError
+        args.append('--ray')
+    elif case == 'path':
+        args[1:2] = ['--ray', str(bags['good0'])]         # the bag taken as the address
+        args.insert(1, str(bags['good1']))
+    elif case == 'malformed':
+        args.append('--ray=nohost')
+    else:
+        with socket.socket() as s:                         # a port nobody listens on
+            s.bind(('127.0.0.1', 0))
+            port = s.getsockname()[1]
+        args.append(f'--ray=127.0.0.1:{port}')
+    if case != 'missing':
+        pytest.importorskip('ray')
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    err_lines = [line for line in err.splitlines() if line.startswith('error:')]
+    assert len(err_lines) == 1 and text in err_lines[0], err
+    assert not (out / 'good0').exists()                   # nothing processed
