@@ -12,7 +12,8 @@ the same bags (22 s against 3 s), most of it in the reconstructor's solves.
 ``process_bags(..., ray='')`` runs the same jobs as Ray tasks instead (one task per bag, one CPU
 each): ``''`` starts a private Ray instance on this machine bound to 127.0.0.1 only (no
 dashboard, no usage statistics, a small object store), an address (``HOST:PORT``, ``auto``)
-connects to a running cluster whose nodes have this package installed.  The report is the same;
+connects to a running cluster whose nodes have this package installed and see the bags and the
+output folder at the same paths (a shared filesystem).  The report is the same;
 a task whose worker dies fails its bag alone (no retries: a bag that kills its worker would kill
 the next one too).  Ray is an optional extra (``pip install nrsfm_ros[ray]``).
 

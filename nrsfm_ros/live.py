@@ -38,9 +38,28 @@ def default_profile() -> Path:
     raise FileNotFoundError('fastdds_loopback.xml not found in config/ or the package share')
 
 
+DDS_ENV = 'NRSFM_DDS'
+DDS_MODES = ('loopback', 'network')
+
+
 def ensure_loopback_env(env: dict[str, str] | None = None) -> dict[str, str]:
-    """Set the loopback-only DDS variables where missing (in ``env`` or os.environ)."""
+    """Set the loopback-only DDS variables where missing (in ``env`` or os.environ).
+
+    ``NRSFM_DDS=network`` (the graph across hosts) leaves discovery to the environment
+    instead: ROS_AUTOMATIC_DISCOVERY_RANGE (default SUBNET), ROS_STATIC_PEERS,
+    FASTRTPS_DEFAULT_PROFILES_FILE (none: Fast DDS's defaults) and ROS_DOMAIN_ID (none: 0)
+    are used as given, the same on every host."""
     target = os.environ if env is None else env
+    mode = target.get(DDS_ENV, 'loopback')
+    if mode not in DDS_MODES:
+        raise ValueError(f'{DDS_ENV}={mode!r}: expected one of {", ".join(DDS_MODES)}')
+    if mode == 'network':
+        if target.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET') == 'LOCALHOST':
+            raise ValueError(f'{DDS_ENV}=network with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: '
+                             'set SUBNET (or unset it) to reach other hosts')
+        target.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'SUBNET')
+        target.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+        return dict(target)
     target.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(default_profile()))
     target['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     target.setdefault('ROS_DOMAIN_ID', str(10 + os.getpid() % 90))

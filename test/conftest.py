@@ -12,6 +12,7 @@ SHARED = ROOT.parent / 'shared'
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(ROOT / 'config' /
                                                             'fastdds_loopback.xml'))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.pop('NRSFM_DDS', None)     # the tests' own graphs stay on loopback
 os.environ.setdefault('ROS_DOMAIN_ID', str(10 + os.getpid() % 90))
 
 
