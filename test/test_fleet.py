@@ -295,6 +295,32 @@ def test_ray_cluster_report_matches_jobs(bags, ray_head, tmp_path, capsys):
     assert listeners and all(_is_loopback(a) for _, a in listeners), listeners
 
 
+def timed_job(job: BagJob) -> dict:
+    """run_job with its wall-clock interval (module level: it is pickled to the workers)."""
+    import time
+    t0 = time.time()
+    entry = run_job(job)
+    entry['interval'] = (t0, time.time())
+    return entry
+
+
+def test_ray_cluster_jobs_caps_bags_at_a_time(bags, ray_head, tmp_path):
+    """--jobs 1 on a 2-CPU cluster: one bag at a time (the tasks' intervals never overlap)."""
+    import sys
+
+    from ray import cloudpickle
+    here = sys.modules[timed_job.__module__]           # Ray workers cannot import test modules
+    cloudpickle.register_pickle_by_value(here)
+    try:
+        rep = process_bags([bags['good0'], bags['good1'], bags['garbage']], tmp_path / 'o',
+                           ['tracker'], jobs=1, worker=timed_job, ray=ray_head)
+    finally:
+        cloudpickle.unregister_pickle_by_value(here)
+    assert rep.jobs == 1 and [b['status'] for b in rep.bags] == ['ok', 'ok', 'failed']
+    spans = sorted(b['interval'] for b in rep.bags)
+    assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:])), spans
+
+
 def test_ray_local_instance_dead_worker_fails_only_its_bag(bags, tmp_path):
     """No address: a private Ray instance with --jobs CPUs on 127.0.0.1 (checked while it
     runs), stopped afterwards; a Ray worker that dies fails its own bag only."""
