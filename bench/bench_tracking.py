@@ -101,9 +101,9 @@ def sequences(seeds: int, frames: int) -> list[dict]:
             tr = ReferenceFlowTracker(stride=1, mask='full')
             W = np.concatenate([tr.step(im).uv.T for im in seq.images])
             runs['anchor'] = (W, time.perf_counter() - t)
-            r = track_sequence(seq.images, MFOFConfig(), smooth=False)
+            r = track_sequence(seq.images, MFOFConfig(stride=1, mask='full'), smooth=False)
             runs['mfof stream'] = (r.W, r.seconds)
-            r = track_sequence(seq.images, MFOFConfig(), smooth=True)
+            r = track_sequence(seq.images, MFOFConfig(stride=1, mask='full'), smooth=True)
             runs['mfof batch'] = (r.W, r.seconds)
             for name, (W, sec) in runs.items():
                 rows.append({'occluder_frames': occluder, 'seed': seed, 'method': name,
@@ -119,7 +119,8 @@ def speed(frames: int = 30) -> list[dict]:
     for w, h in ((160, 128), (320, 256), (640, 480)):
         seq = generate_deforming(DeformConfig(width=w, height=h, frames=frames,
                                               max_motion_px=60 * w / 320))
-        for name, make in (('mfof stream', lambda: MFOFTracker(MFOFConfig())),
+        dense = MFOFConfig(stride=1, mask='full')      # every pixel, as the anchor
+        for name, make in (('mfof stream', lambda: MFOFTracker(dense)),
                            ('anchor', lambda: ReferenceFlowTracker(stride=1, mask='full'))):
             tr = make()
             tr.step(seq.images[0])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -160,15 +160,23 @@ def _parser() -> argparse.ArgumentParser:
     tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
     tr.add_argument('frames')
     tr.add_argument('--out', required=True)
-    tr.add_argument('--method', default='mfof', choices=['mfof', 'reference'],
-                    help='mfof: multi-frame subspace flow + occlusion tensor (default); '
-                    'reference: DIS reference->frame seeded by the previous frame')
-    tr.add_argument('--preset', default='medium', choices=['ultrafast', 'fast', 'medium'],
-                    help='DIS preset of the data step (default medium)')
-    tr.add_argument('--stride', type=int, default=2, help='track every stride-th pixel')
-    tr.add_argument('--mask', default='texture', choices=['texture', 'full'])
-    tr.add_argument('--rank', type=int, default=8, help='mfof: learned basis images (default 8)')
-    tr.add_argument('--window', type=int, default=20, help='mfof: refinement window (frames)')
+    # the tracker node's parameters (params.TrackerParams): the same names, defaults and checks
+    from .core.tracking import MASKS, PRESETS
+    from .params import TRACKER_METHODS, TrackerParams
+    tp = TrackerParams()
+    tr.add_argument('--method', default=None, choices=TRACKER_METHODS,
+                    help=f'mfof: multi-frame subspace flow + occlusion tensor; reference: DIS '
+                    f'reference->frame seeded by the previous frame (default {tp.method})')
+    tr.add_argument('--preset', default=None, choices=sorted(PRESETS),
+                    help=f'DIS preset of the data step (default {tp.preset})')
+    tr.add_argument('--stride', type=int, default=None,
+                    help=f'track every stride-th pixel (default {tp.stride})')
+    tr.add_argument('--mask', default=None, choices=MASKS,
+                    help=f'which reference pixels to track (default {tp.mask})')
+    tr.add_argument('--rank', type=int, default=None,
+                    help=f'mfof: learned basis images (default {tp.rank})')
+    tr.add_argument('--window', type=int, default=None,
+                    help=f'mfof: refinement window, frames (default {tp.window})')
     tr.add_argument('--streaming', action='store_true',
                     help='mfof: skip the two-sided batch pass (what the node publishes)')
 
@@ -247,7 +255,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return int(globals()['cmd_' + args.verb.replace('-', '_')](args) or 0)
+        return int(VERBS[args.verb](args) or 0)
     except KeyboardInterrupt:
         return 130
     except (CliError, ValueError, FileNotFoundError, FileExistsError, LookupError,
@@ -794,18 +802,22 @@ def _read_frames(path: Path) -> list[np.ndarray]:
     return frames
 
 
+TRACK_FLAGS = ('method', 'preset', 'stride', 'mask', 'rank', 'window')   # TrackerParams names
+
+
 def cmd_track(args: argparse.Namespace) -> int:
-    from .core.tracking import MFOFConfig, ReferenceFlowTracker, track_sequence
+    from .core.tracking import ReferenceFlowTracker, track_sequence
+    from .params import TrackerParams
     frames = _read_frames(Path(args.frames))
     if len(frames) < 2:
         raise CliError(f'{args.frames}: need at least 2 frames, found {len(frames)}')
     for i, f in enumerate(frames):
         if f.shape != frames[0].shape:
             raise CliError(f'frame {i}: size {f.shape} differs from frame 0 {frames[0].shape}')
-    if args.method == 'mfof':
-        cfg = MFOFConfig(preset=args.preset, stride=args.stride, mask=args.mask,
-                         rank=args.rank, window=args.window)
-        res = track_sequence(frames, cfg, smooth=not args.streaming)
+    given = {k: getattr(args, k) for k in TRACK_FLAGS if getattr(args, k) is not None}
+    p = TrackerParams().updated(given)          # the node's checks: an error names the flag
+    if p.method == 'mfof':
+        res = track_sequence(frames, p.mfof_config(), smooth=not args.streaming)
         W, V = res.W.astype(np.float64), res.V
         np.savez_compressed(args.out, W=W, V=V, O=res.O, track_ids=res.ids,
                             reselections=np.array(res.reselections, np.int64))
@@ -814,7 +826,9 @@ def cmd_track(args: argparse.Namespace) -> int:
             extra += (f'; new reference at frame {res.reselections[0]}: later frames keep the '
                       'first reference\'s tracks marked invisible')
     else:
-        tracker = ReferenceFlowTracker(preset=args.preset, stride=args.stride, mask=args.mask)
+        tracker = ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,
+                                       min_std=p.min_std,
+                                       occlusion_threshold=p.occlusion_threshold)
         out = [tracker.step(f) for f in frames]
         W = np.concatenate([t.uv.T for t in out]).astype(np.float64)
         V = np.stack([t.visibility for t in out])
@@ -1030,6 +1044,24 @@ def cmd_view(args: argparse.Namespace) -> int:
     serve(args.bag, args.host, args.port, args.rate, args.loop,
           out=lambda line: print(line, flush=True))
     return 0
+
+
+# verb -> the function that runs it (every verb of _parser; test_params_vocabulary checks)
+VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
+    'demo': cmd_demo,
+    'synth': cmd_synth,
+    'record': cmd_record,
+    'replay': cmd_replay,
+    'process': cmd_process,
+    'topic': cmd_topic,
+    'export': cmd_export,
+    'evaluate': cmd_evaluate,
+    'track': cmd_track,
+    'reconstruct': cmd_reconstruct,
+    'register': cmd_register,
+    'scene-flow': cmd_scene_flow,
+    'view': cmd_view,
+}
 
 
 if __name__ == '__main__':

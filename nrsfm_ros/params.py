@@ -2,12 +2,37 @@
 the ROS parameters and the CLI.  Each field has a default and a validator that gives a reason."""
 from __future__ import annotations
 
+import inspect
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from .core.registration.base import PARAM_RULES as _REG
-from .core.tracking import PRESETS
+from .core.tracking import PARAM_RULES as _TRK
+from .core.tracking import MFOFConfig, ReferenceFlowTracker
+
+# the tracker's defaults are the core's: MFOFConfig's, and ReferenceFlowTracker's for what only
+# the reference method takes; the checks are core.tracking.PARAM_RULES
+_MFOF = MFOFConfig()
+_REF_TRACKER = {k: p.default for k, p in
+                inspect.signature(ReferenceFlowTracker).parameters.items()}
+TRACKER_METHODS = ('mfof', 'reference')
+
+# Defaults a node sets on purpose apart from the core function it calls (test/
+# test_params_vocabulary.py fails on any other disagreement, and on an entry here that agrees).
+NODE_DEFAULTS = {
+    ('registrar', 'max_iterations'): 'icp() 50: a live budget per cloud (30 converge on '
+                                     'consecutive clouds, warm-started)',
+    ('registrar', 'max_points'): 'icp() 5000: a live budget per cloud (1000 evenly strided '
+                                 'source points; the transform moves all)',
+    ('reconstructor', 'mode'): "StreamNRSfM 'window': the node's default is the most accurate "
+                               'mode on the pipeline benchmark',
+    ('reconstructor', 'projection'): "StreamNRSfM 'weak': the node refines batch solves for "
+                                     'the perspective camera of CameraInfo',
+    ('scene_flow', 'pose_points'): 'object_poses() max_points 0 (all): the ego-motion on 2000 '
+                                   'tracks costs half the CPU of all 6k at the same accuracy',
+}
 
 
 def _one_of(*values: str) -> Callable[[Any], str | None]:
@@ -15,11 +40,11 @@ def _one_of(*values: str) -> Callable[[Any], str | None]:
 
 
 def _positive(v: Any) -> str | None:
-    return None if v > 0 else 'must be > 0'
+    return None if v > 0 and math.isfinite(v) else 'must be a finite number > 0'
 
 
 def _non_negative(v: Any) -> str | None:
-    return None if v >= 0 else 'must be >= 0'
+    return None if v >= 0 and math.isfinite(v) else 'must be a finite number >= 0'
 
 
 def _at_least(n: float) -> Callable[[Any], str | None]:
@@ -90,42 +115,54 @@ def _queue_policy() -> Any:
 
 @dataclass(frozen=True)
 class TrackerParams(Params):
-    method: str = rule('mfof', _one_of('mfof', 'reference'),
+    method: str = rule('mfof', _one_of(*TRACKER_METHODS),
                        'mfof: multi-frame subspace flow with occlusion tensor; reference: '
                        'plain DIS reference->frame seeded by the previous frame')
-    preset: str = rule('medium', _one_of(*PRESETS), 'OpenCV DIS preset of the flow data step')
-    stride: int = rule(2, _at_least(1), 'track every stride-th reference pixel')
-    mask: str = rule('texture', _one_of('texture', 'full'), 'which reference pixels to track')
-    min_std: float = rule(4.0, _non_negative, 'texture mask: local intensity std threshold')
-    rank: int = rule(8, _at_least(0), 'mfof: learned trajectory-basis images (plus 6 '
+    preset: str = rule(_MFOF.preset, _TRK['preset'], 'OpenCV DIS preset of the flow data step')
+    stride: int = rule(_MFOF.stride, _TRK['stride'], 'track every stride-th reference pixel')
+    mask: str = rule(_MFOF.mask, _TRK['mask'], 'which reference pixels to track')
+    min_std: float = rule(_MFOF.min_std, _TRK['min_std'],
+                          'texture mask: local intensity std threshold')
+    rank: int = rule(_MFOF.rank, _TRK['rank'], 'mfof: learned trajectory-basis images (plus 6 '
                      'polynomial ones)')
-    window: int = rule(20, _at_least(3), 'mfof: frames in the subspace refinement window')
-    refine_every: int = rule(5, _at_least(1), 'mfof: re-fit the subspace every N frames')
-    subspace_weight: float = rule(0.3, _non_negative, 'mfof: pull of the subspace on visible '
-                                  'pixels (occluded ones follow it fully)')
-    spatial_sigma: float = rule(2.0, _non_negative, 'mfof: smoothing of the basis images (px)')
-    backward_preset: str = rule('fast', _one_of(*PRESETS), 'mfof: DIS preset of the backward '
-                                'flow for the forward-backward check')
-    fb_threshold: float = rule(2.0, _positive, 'mfof: forward-backward error (px) at '
-                               'occlusion probability 1/2')
-    ncc_threshold: float = rule(0.5, _positive, 'mfof: 1 - local ZNCC of the reference and the '
-                                'aligned frame at occlusion probability 1/2')
-    recapture_margin: float = rule(0.07, _non_negative, 'mfof: a second DIS pass on the frame '
+    window: int = rule(_MFOF.window, _TRK['window'],
+                       'mfof: frames in the subspace refinement window')
+    refine_every: int = rule(_MFOF.refine_every, _TRK['refine_every'],
+                             'mfof: re-fit the subspace every N frames')
+    subspace_weight: float = rule(_MFOF.subspace_weight, _TRK['subspace_weight'],
+                                  'mfof: pull of the subspace on visible pixels (occluded ones '
+                                  'follow it fully)')
+    spatial_sigma: float = rule(_MFOF.spatial_sigma, _TRK['spatial_sigma'],
+                                'mfof: smoothing of the basis images (px)')
+    backward_preset: str = rule(_MFOF.backward_preset, _TRK['backward_preset'],
+                                'mfof: DIS preset of the backward flow for the forward-backward '
+                                'check')
+    fb_threshold: float = rule(_MFOF.fb_threshold, _TRK['fb_threshold'],
+                               'mfof: forward-backward error (px) at occlusion probability 1/2')
+    ncc_threshold: float = rule(_MFOF.ncc_threshold, _TRK['ncc_threshold'],
+                                'mfof: 1 - local ZNCC of the reference and the aligned frame at '
+                                'occlusion probability 1/2')
+    recapture_margin: float = rule(_MFOF.recapture_margin, _TRK['recapture_margin'],
+                                   'mfof: a second DIS pass on the frame '
                                    'itself, seeded by the prediction, replaces the residual flow '
                                    'where its local 1 - ZNCC is lower by this much (lost tracks '
                                    'found again on foreshortened views; 0: off)')
-    predict_offset: bool = rule(True, None, 'mfof: the data step starts each pixel at its own '
+    predict_offset: bool = rule(_MFOF.predict_offset, None,
+                                'mfof: the data step starts each pixel at its own '
                                 'last position moved by the subspace (off: the smooth subspace '
                                 'prediction alone; strong deformation is lost on fast folds)')
-    outlier_px: float = rule(3.0, _non_negative, 'mfof: data further than this from the '
-                             'subspace loses weight (0: off)')
-    reselect_fraction: float = rule(0.35, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
+    outlier_px: float = rule(_MFOF.outlier_px, _TRK['outlier_px'],
+                             'mfof: data further than this from the subspace loses weight '
+                             '(0: off)')
+    reselect_fraction: float = rule(_MFOF.reselect_fraction, _TRK['reselect_fraction'],
                                     'mfof: new reference when less of it stays in view')
-    collapse_fraction: float = rule(0.1, lambda v: None if 0 <= v < 1 else 'must be in [0, 1)',
+    collapse_fraction: float = rule(_MFOF.collapse_fraction, _TRK['collapse_fraction'],
                                     'mfof: ... or less of the in-view part stays consistent')
-    reselect_patience: int = rule(3, _at_least(1), 'mfof: ... for this many frames in a row')
-    occlusion_threshold: float = rule(25.0, _positive, 'reference: photometric residual for '
-                                      'visibility 0')
+    reselect_patience: int = rule(_MFOF.reselect_patience, _TRK['reselect_patience'],
+                                  'mfof: ... for this many frames in a row')
+    occlusion_threshold: float = rule(_REF_TRACKER['occlusion_threshold'],
+                                      _TRK['occlusion_threshold'],
+                                      'reference: photometric residual for visibility 0')
     publish_flow: bool = rule(True, None, 'publish the dense flow image')
     reliable: bool = rule(False, None, 'reliable QoS on the camera input (default best effort)')
     queue_size: int = _queue_size()
@@ -198,17 +235,18 @@ class RegistrarParams(Params):
                                'iteration cap (ICP and CPD iterations; '
                                'GA dynamics steps, which needs ~300; BH-RGA L-BFGS '
                                'iterations per softening stage)')
-    max_points: int = rule(1000, _non_negative, 'source points used while iterating (0: all)')
+    max_points: int = rule(1000, _REG['max_points'],
+                           'source points used while iterating (0: all)')
     tolerance: float = rule(1e-6, _REG['tolerance'], 'relative RMSE change to stop')
     trim: float = rule(0.9, _REG['trim'], 'icp*: fraction of closest pairs kept each iteration '
                        '(about the overlap)')
     voxel: float = rule(0.0, _REG['voxel'], 'icp*: voxel-grid edge (m) of the coarse-to-fine '
                         'levels (4, 2, 1 x voxel; centroids average the noise; 0: off)')
-    init: str = rule('centroid', _one_of('centroid', 'global'),
+    init: str = rule('centroid', _one_of('centroid', 'global', 'identity'),
                      'icp*: start of the first cloud and of every reflection re-check: centroid '
-                     '(translation only) or global (search over all rotations, robust to '
-                     'outliers and missing parts, ~1 s at 35k points); other clouds start from '
-                     'the previous transform')
+                     '(translation only), global (search over all rotations, robust to '
+                     'outliers and missing parts, ~1 s at 35k points) or identity (the clouds '
+                     'as they are); other clouds start from the previous transform')
     w: float = rule(0.1, _REG['w'], 'cpd: weight of the uniform outlier component')
     beta: float = rule(2.0, _REG['beta'], 'cpd-nonrigid, ecpd-nonrigid, nrga: kernel width of '
                        'the displacement field (units of the RMS radius)')

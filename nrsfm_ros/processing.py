@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,6 +30,7 @@ from .params import (Params, ReconstructorParams, RegistrarParams, SceneFlowPara
                      TrackerParams)
 
 Output = tuple[str, str, Any]
+Handler = Callable[[Any], list[Output]]     # one input kind's message -> outputs
 
 MIN_IMAGE_SIDE = 16     # px: smaller camera images are rejected by the tracker
 
@@ -142,6 +144,10 @@ CLOUD_INPUTS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 }
 # positions beyond this (pixels or metres) are not sensor data: such clouds are rejected
 MAX_COORDINATE = 1e6
+ALL_POINTS = 10 ** 9      # a registration point budget no cloud reaches (max_points 0: all)
+# visualization_msgs/Marker type and action of the scene-flow arrows
+MARKER_LINE_LIST = 5      # Marker.LINE_LIST: each pair of points is one segment
+MARKER_ADD = 0            # Marker.ADD
 
 
 class Processor:
@@ -160,11 +166,15 @@ class Processor:
         self.params = params
 
     def recover(self, kind: str, err: Exception) -> None:
-        """After an unexpected exception in ``on_<kind>``: put the state back in order
+        """After an unexpected exception in the handler of ``kind``: put the state back in order
         (subclasses whose state a half-done update could corrupt override this)."""
 
     def status(self) -> dict[str, str]:
         """Method-specific values for /diagnostics and the process report (none here)."""
+        return {}
+
+    def handlers(self) -> dict[str, Handler]:
+        """The input kinds this processor takes and the method that handles each."""
         return {}
 
     def handle(self, kind: str, msg: Any) -> list[Output]:
@@ -173,13 +183,17 @@ class Processor:
         Raises only MessageError: a rejected input (counted ``malformed``) or a
         :class:`ProcessingError` wrapping any other exception (counted ``failed``); both are
         counted by kind in ``stats.errors`` and the processor stays usable."""
+        handler = self.handlers().get(kind)
+        if handler is None:
+            raise ValueError(f'{self.name}: no input {kind!r} (inputs: '
+                             f'{sorted(self.handlers())})')
         self.stats.received += 1
         self.stats.stamps.append(time.monotonic())
         t0 = time.perf_counter()
         try:
             if kind in CLOUD_INPUTS:
                 pc2.check_cloud(msg, *CLOUD_INPUTS[kind], limit=MAX_COORDINATE)
-            out = getattr(self, f'on_{kind}')(msg)
+            out = handler(msg)
         except MessageError as err:
             self.stats.malformed += 1
             self.stats.count_error(error_key(kind, err), str(err))
@@ -203,6 +217,9 @@ class TrackerProcessor(Processor):
 
     name = 'tracker'
     params_cls = TrackerParams
+
+    def handlers(self) -> dict[str, Handler]:
+        return {'image': self.on_image, 'image_compressed': self.on_image_compressed}
 
     def __init__(self, factory: MsgFactory, params: TrackerParams | None = None) -> None:
         super().__init__(factory, params)
@@ -322,6 +339,9 @@ class ReconstructorProcessor(Processor):
     name = 'reconstructor'
     params_cls = ReconstructorParams
 
+    def handlers(self) -> dict[str, Handler]:
+        return {'camera_info': self.on_camera_info, 'tracks': self.on_tracks}
+
     def __init__(self, factory: MsgFactory, params: ReconstructorParams | None = None) -> None:
         super().__init__(factory, params)
         self.K: np.ndarray | None = None
@@ -431,11 +451,38 @@ def _size_from(uv: np.ndarray) -> tuple[int, int]:
     return int(max(h, 1)), int(max(w, 1))
 
 
+def registration_kwargs(p: RegistrarParams, target_tree: cKDTree | None = None
+                        ) -> dict[str, Any]:
+    """The keyword arguments of ``core.registration.register`` for the registrar's parameters
+    (priors aside): each family gets the parameters it takes, ``max_points`` 0 as
+    ``ALL_POINTS`` for CPD and NRGA (which have no 0-means-all), BH-RGA's iterations from
+    ``max_iterations``; ``target_tree`` (a cKDTree of the reference) serves ICP."""
+    if p.method.startswith(('cpd', 'ecpd')):
+        kw: dict[str, Any] = dict(max_iterations=p.max_iterations, tolerance=p.tolerance,
+                                  max_points=p.max_points or ALL_POINTS, w=p.w)
+        if p.method.endswith('nonrigid'):
+            kw.update(beta=p.beta, lam=p.lam)
+    elif p.method == 'ga':
+        kw = dict(max_iterations=p.max_iterations, max_points=p.max_points)
+    elif p.method == 'bhrga':
+        kw = dict(iterations=p.max_iterations)
+    elif p.method == 'nrga':
+        kw = dict(max_points=p.max_points or ALL_POINTS, beta=p.beta)
+    else:
+        kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
+                  max_points=p.max_points, target_tree=target_tree, voxel=p.voxel, init=p.init)
+    kw['inlier_threshold'] = p.inlier_threshold
+    return kw
+
+
 class RegistrarProcessor(Processor):
     """nrsfm/points + registration/reference -> aligned cloud, transform, displacement."""
 
     name = 'registrar'
     params_cls = RegistrarParams
+
+    def handlers(self) -> dict[str, Handler]:
+        return {'reference': self.on_reference, 'points': self.on_points}
 
     def __init__(self, factory: MsgFactory, params: RegistrarParams | None = None) -> None:
         super().__init__(factory, params)
@@ -474,20 +521,7 @@ class RegistrarProcessor(Processor):
             if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
         src, ids = src[ok], ids[ok]
         p = self.params
-        if p.method.startswith(('cpd', 'ecpd')):
-            kw: dict[str, Any] = dict(max_iterations=p.max_iterations, tolerance=p.tolerance,
-                                      max_points=p.max_points or 10 ** 9, w=p.w)
-            if p.method.endswith('nonrigid'):
-                kw.update(beta=p.beta, lam=p.lam)
-        elif p.method == 'ga':
-            kw = dict(max_iterations=p.max_iterations, max_points=p.max_points or 10 ** 9)
-        elif p.method == 'bhrga':
-            kw = dict(iterations=p.max_iterations)
-        elif p.method == 'nrga':
-            kw = dict(max_points=p.max_points or 10 ** 9, beta=p.beta)
-        else:
-            kw = dict(max_iterations=p.max_iterations, tolerance=p.tolerance, trim=p.trim,
-                      max_points=p.max_points, target_tree=self._tree, voxel=p.voxel)
+        kw = registration_kwargs(p, self._tree)
         if p.prior_matches and p.method in ('ecpd-rigid', 'ecpd-nonrigid', 'ga', 'bhrga'):
             kw['priors'] = self._priors(ids, p.prior_matches)
         # The depth reflection of the reconstruction is consistent between windows, so both
@@ -495,10 +529,7 @@ class RegistrarProcessor(Processor):
         c = src.mean(axis=0)
         mirrored = src.copy()
         mirrored[:, 2] = 2 * c[2] - mirrored[:, 2]
-        if p.method.startswith('icp'):
-            kw['init'] = p.init
         t0 = time.perf_counter()
-        kw['inlier_threshold'] = p.inlier_threshold
         thr = resolve_threshold(self.reference, p.inlier_threshold)
         if p.try_reflection and (self._checks % 10 == 0):
             res = register(src, self.reference, method=p.method, **kw)
@@ -589,6 +620,10 @@ class SceneFlowProcessor(Processor):
 
     name = 'scene_flow'
     params_cls = SceneFlowParams
+
+    def handlers(self) -> dict[str, Handler]:
+        return {'camera_info': self.on_camera_info, 'image': self.on_image,
+                'depth': self.on_depth, 'points': self.on_points}
 
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
@@ -744,7 +779,7 @@ class SceneFlowProcessor(Processor):
         points = [f.make('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=float(p[2]))
                   for p in seg]
         marker = f.make('visualization_msgs/msg/Marker', header=f.header(stamp, frame),
-                        ns='scene_flow', id=0, type=5, action=0,
+                        ns='scene_flow', id=0, type=MARKER_LINE_LIST, action=MARKER_ADD,
                         pose=f.make('geometry_msgs/msg/Pose',
                                     orientation=f.make('geometry_msgs/msg/Quaternion', w=1.0)),
                         scale=f.make('geometry_msgs/msg/Vector3', x=0.003),

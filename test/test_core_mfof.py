@@ -93,9 +93,10 @@ def test_mfof_meets_issue_targets_and_beats_the_anchor(occluder_seq):
     anchor = ReferenceFlowTracker(stride=1, mask='full')
     Wa = np.concatenate([anchor.step(im).uv.T for im in seq.images])
     a_all, _, a_occ = _errors(Wa, seq)
-    stream = track_sequence(seq.images, MFOFConfig(), smooth=False)
+    dense = MFOFConfig(stride=1, mask='full')          # every pixel, as the anchor
+    stream = track_sequence(seq.images, dense, smooth=False)
     s_all, s_vis, s_occ = _errors(stream.W, seq)
-    batch = track_sequence(seq.images, MFOFConfig(), smooth=True)
+    batch = track_sequence(seq.images, dense, smooth=True)
     b_all, _, b_occ = _errors(batch.W, seq)
     # issue 5: mean error <= 1.0 px over all frames, <= 2.0 px on occluded points.  Seed 3 is
     # the hardest of bench/bench_tracking.py's seeds: the two-sided batch pass meets 2.0 px on
@@ -109,7 +110,7 @@ def test_mfof_meets_issue_targets_and_beats_the_anchor(occluder_seq):
 
 def test_occlusion_tensor_flags_the_occluder(occluder_seq):
     seq = occluder_seq
-    tr = MFOFTracker(MFOFConfig())
+    tr = MFOFTracker(MFOFConfig(stride=1, mask='full'))
     vis_occ, vis_free = [], []
     for f, im in enumerate(seq.images):
         fr = tr.step(im)
@@ -124,7 +125,7 @@ def test_reference_is_reselected_when_the_view_leaves_it():
     rng = np.random.default_rng(2)
     big = cv2.GaussianBlur(rng.integers(0, 255, (120, 400)).astype(np.uint8), (0, 0), 1.5)
     frames = [np.ascontiguousarray(big[10:90, 6 * k:6 * k + 96]) for k in range(30)]
-    tr = MFOFTracker(MFOFConfig(rank=4, window=8, stride=2))
+    tr = MFOFTracker(MFOFConfig(rank=4, window=8, stride=2, mask='full'))
     out = [tr.step(f) for f in frames]
     re = [fr.index for fr in out if fr.reselected]
     assert re and 8 <= re[0] <= 20
@@ -176,7 +177,7 @@ def _versus_truth(frames, seq):
 
 def test_visibility_follows_ground_truth_under_foreshortening_and_shading(turning_flag):
     seq = turning_flag
-    tr = MFOFTracker(MFOFConfig(stride=2))
+    tr = MFOFTracker(MFOFConfig(stride=2, mask='full'))
     out = [tr.step(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in seq.images]
     assert seq.V[1:].mean() > 0.99
     assert not any(fr.reselected for fr in out) and tr.epoch == 0
@@ -189,7 +190,7 @@ def test_visibility_follows_ground_truth_under_foreshortening_and_shading(turnin
 def test_forced_reselection_carries_tracks_with_their_ids(turning_flag):
     seq = turning_flag
     grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in seq.images]
-    tr = MFOFTracker(MFOFConfig(stride=2))
+    tr = MFOFTracker(MFOFConfig(stride=2, mask='full'))
     switch = 10
     out = [tr.step(g) for g in grey[:switch + 1]]
     fr = out[-1]
@@ -223,7 +224,8 @@ def test_forced_reselection_carries_tracks_with_their_ids(turning_flag):
     post = [err(f, a) for f, a in enumerate(after, switch + 1)]
     assert max(post[:3]) < before + 0.5 and np.mean(post) < before + 1.0 and max(post) < 2.5
     # track_sequence keeps the first reference's P and continues the carried tracks
-    res = track_sequence(grey[:switch + 4], MFOFConfig(stride=2, reselect_fraction=0.99,
+    res = track_sequence(grey[:switch + 4], MFOFConfig(stride=2, mask='full',
+                                                       reselect_fraction=0.99,
                                                        reselect_patience=1), smooth=False)
     assert res.reselections and res.W.shape == (2 * (switch + 4), out[0].ids.size)
     f = res.reselections[0] + 1
@@ -308,7 +310,7 @@ def test_mfof_rejects_bad_input():
         MFOFConfig(ncc_threshold=0).validate()
     with pytest.raises(ValueError, match='recapture_margin'):
         MFOFConfig(recapture_margin=-0.1).validate()
-    tr = MFOFTracker()
+    tr = MFOFTracker(MFOFConfig(stride=1, mask='full'))
     tr.step(np.full((40, 50), 100, np.uint8))
     with pytest.raises(ValueError, match='differs from the reference'):
         tr.step(np.zeros((10, 10), np.uint8))

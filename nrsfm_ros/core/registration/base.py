@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 DEFAULT_INLIER_FRACTION = 0.02       # of the target's bounding-box diagonal
+MIN_POINT_BUDGET = 10                # fewest source points a method may iterate on
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,8 @@ PARAM_RULES: dict[str, Rule] = {
     'lam': _positive,
     'inlier_threshold': lambda v: None if _finite(v) and v >= 0
     else 'must be >= 0 (0: 2% of the target diagonal)',
+    'max_points': lambda v: None if _finite(v) and v == int(v) and (
+        v == 0 or v >= MIN_POINT_BUDGET) else f'must be 0 (all) or >= {MIN_POINT_BUDGET}',
 }
 
 

@@ -43,7 +43,8 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
 
     ``eps`` softening, ``dt`` time step, ``damping`` viscosity (fraction of velocity lost per
     step), all in units of the normalised data; ``priors`` (K, 2) (source, target) index pairs
-    get ``prior_mass`` times the mass and attract their partner only.  The softened potential
+    get ``prior_mass`` times the mass and attract their partner only; ``max_points`` (0: all)
+    random points of each set take part.  The softened potential
     biases the optimum slightly, so the pose is polished by trimmed ICP (``polish_trim`` of the
     closest pairs kept; 0 to skip) from the gravitational solution."""
     t0 = time.perf_counter()
@@ -54,14 +55,15 @@ def ga(source: np.ndarray, target: np.ndarray, max_iterations: int = 300,
             raise ValueError(f'{name}={v}: expected > 0')
     check_param('polish_trim', polish_trim)
     check_param('max_iterations', max_iterations)
+    check_param('max_points', max_points)
     threshold = resolve_threshold(X0, inlier_threshold)
     if not 0 <= damping < 1:
         raise ValueError(f'damping={damping}: expected 0 <= damping < 1')
     rng = np.random.default_rng(seed)
     Xn, Yn, cx, cy, sc = normalise_pair(X0, Y0)
-    xi = rng.choice(len(Xn), max_points, replace=False) if len(Xn) > max_points else \
+    xi = rng.choice(len(Xn), max_points, replace=False) if 0 < max_points < len(Xn) else \
         np.arange(len(Xn))
-    yi = rng.choice(len(Yn), max_points, replace=False) if len(Yn) > max_points else \
+    yi = rng.choice(len(Yn), max_points, replace=False) if 0 < max_points < len(Yn) else \
         np.arange(len(Yn))
     X, Y = Xn[xi], Yn[yi]
     m = np.full(len(X), 1.0 / len(X))

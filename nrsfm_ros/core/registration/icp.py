@@ -47,7 +47,7 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     if method not in ('point_to_point', 'point_to_plane'):
         raise ValueError(f"method={method!r}: expected 'point_to_point' or 'point_to_plane'")
     for name, value in (('trim', trim), ('voxel', voxel), ('tolerance', tolerance),
-                        ('max_iterations', max_iterations)):
+                        ('max_iterations', max_iterations), ('max_points', max_points)):
         check_param(name, value)
     src = check_points('source', source)
     dst = check_points('target', target)

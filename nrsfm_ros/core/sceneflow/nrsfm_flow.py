@@ -19,6 +19,8 @@ The flow of pair (a, b) is then ``T_a_b X_b - X_a`` with the estimated camera mo
 """
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -65,6 +67,14 @@ def _check_cloud(X: np.ndarray, ids: np.ndarray, name: str) -> tuple[np.ndarray,
     return X, ids
 
 
+def _number(v: object) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _count(v: object, lo: int) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= lo
+
+
 def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float = 0.1,
                  min_points: int = 3, prior: tuple[np.ndarray, np.ndarray] | None = None,
                  return_weights: bool = False, max_points: int = 0):
@@ -81,6 +91,13 @@ def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float =
     warm start from the previous window; fewer ``iterations`` are then needed).
     ``return_weights``: also return (ids, weights) of the last re-weighting.
     ``max_points`` > 0: fit on about that many tracks (a fixed pseudo-random subset of the ids)."""
+    for name, value, ok, want in (
+            ('iterations', iterations, _count(iterations, 0), 'an integer >= 0'),
+            ('softness', softness, _number(softness) and softness > 0, 'a finite number > 0'),
+            ('min_points', min_points, _count(min_points, 3), 'an integer >= 3'),
+            ('max_points', max_points, _count(max_points, 0), 'an integer >= 0 (0: all)')):
+        if not ok:
+            raise ValueError(f'{name}={value!r}: expected {want}')
     F = len(clouds)
     if F == 0:
         raise ValueError('clouds: expected at least one cloud')

@@ -52,12 +52,13 @@ get new ids ``epoch * H * W + y * W + x``.  Outputs list carried tracks first, t
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import cv2
 import numpy as np
 
-from .reference_flow import PRESETS, check_grey, reference_pixels
+from .reference_flow import check_grey, reference_pixels
+from .rules import PARAM_RULES, PRESETS, check_param
 from .subspace import GridSampler, fit_basis, fit_coefficients
 
 
@@ -80,36 +81,18 @@ class MFOFConfig:
     reselect_fraction: float = 0.35  # new reference when less of the mask stays in view ...
     collapse_fraction: float = 0.1  # ... or less of the in-view part is consistent ...
     reselect_patience: int = 3      # ... for this many frames in a row
-    stride: int = 1                 # output every stride-th mask pixel as a track
-    mask: str = 'full'              # 'full' or 'texture'
+    stride: int = 2                 # output every stride-th mask pixel as a track
+    mask: str = 'texture'           # 'texture' (pixels with local contrast) or 'full'
     min_std: float = 4.0            # texture mask threshold
     recapture_margin: float = 0.07  # 1 - ZNCC gain for the coarse-to-fine pass to win (0: off)
     predict_offset: bool = True     # the prediction keeps each pixel's offset from the subspace
 
     def validate(self) -> None:
-        for name in ('preset', 'backward_preset'):
-            if getattr(self, name) not in PRESETS:
-                raise ValueError(f'{name}={getattr(self, name)!r}: expected one of '
-                                 f'{sorted(PRESETS)}')
-        if self.mask not in ('full', 'texture'):
-            raise ValueError(f"mask={self.mask!r}: expected 'full' or 'texture'")
-        for name in ('rank', 'batch_rank', 'refine_every', 'reselect_patience', 'stride'):
-            if getattr(self, name) < (0 if 'rank' in name else 1):
-                raise ValueError(f'{name}={getattr(self, name)}: too small')
-        if self.window < 3:
-            raise ValueError(f'window={self.window}: expected >= 3')
-        if self.outlier_px < 0:
-            raise ValueError(f'outlier_px={self.outlier_px}: expected >= 0 (0: off)')
-        for name in ('fb_threshold', 'ncc_threshold', 'huber_px'):
-            if getattr(self, name) <= 0:
-                raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
-        if self.recapture_margin < 0:
-            raise ValueError(f'recapture_margin={self.recapture_margin}: expected >= 0 (0: off)')
-        if self.subspace_weight < 0 or self.spatial_sigma < 0:
-            raise ValueError('subspace_weight and spatial_sigma must be >= 0')
-        for name in ('reselect_fraction', 'collapse_fraction'):
-            if not 0 <= getattr(self, name) < 1:
-                raise ValueError(f'{name}={getattr(self, name)}: expected [0, 1)')
+        """ValueError naming the first field that ``rules.PARAM_RULES`` rejects (the tracker
+        node's parameters are checked by the same rules)."""
+        for f in fields(self):
+            if f.name in PARAM_RULES:
+                check_param(f.name, getattr(self, f.name))
 
 
 @dataclass(frozen=True)

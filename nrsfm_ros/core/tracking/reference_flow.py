@@ -13,11 +13,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-PRESETS = {
-    'ultrafast': cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-    'fast': cv2.DISOPTICAL_FLOW_PRESET_FAST,
-    'medium': cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
-}
+from .rules import MASKS, PRESETS, check_param
+
+__all__ = ['MASKS', 'PRESETS', 'ReferenceFlowTracker', 'TrackFrame', 'texture_mask']
 
 
 def texture_mask(grey: np.ndarray, block: int = 7, min_std: float = 4.0) -> np.ndarray:
@@ -81,12 +79,9 @@ class ReferenceFlowTracker:
 
     def __init__(self, preset: str = 'medium', stride: int = 2, mask: str = 'texture',
                  min_std: float = 4.0, occlusion_threshold: float = 25.0) -> None:
-        if preset not in PRESETS:
-            raise ValueError(f'preset={preset!r}: expected one of {sorted(PRESETS)}')
-        if stride < 1:
-            raise ValueError(f'stride: expected >= 1, got {stride}')
-        if mask not in ('texture', 'full'):
-            raise ValueError(f"mask={mask!r}: expected 'texture' or 'full'")
+        for name, value in (('preset', preset), ('stride', stride), ('mask', mask),
+                            ('min_std', min_std), ('occlusion_threshold', occlusion_threshold)):
+            check_param(name, value)
         self.preset, self.stride, self.mask_mode = preset, stride, mask
         self.min_std, self.occlusion_threshold = min_std, occlusion_threshold
         self._dis = cv2.DISOpticalFlow_create(PRESETS[preset])
