@@ -130,7 +130,8 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument('-n', '--count', type=int, default=1, help='echo: messages to show')
     t.add_argument('--seconds', type=float, default=3.0, help='hz/echo/list: how long to listen')
 
-    e = add('export', 'write PLY files and PNG renders of the clouds in a bag')
+    e = add('export', 'write PLY files and PNG renders of the clouds in a bag (perspective, '
+            'oblique view; the cloud\'s rgb colours, else shaded by depth)')
     e.add_argument('bag')
     e.add_argument('--out', required=True)
     e.add_argument('--topic', default='nrsfm/points')
@@ -613,7 +614,8 @@ def cmd_topic(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from .io import pointcloud2 as pc2
     from .io.bag import deserialize, read_messages
-    from .io.export import render_png, write_ply
+    from .io.export import write_ply
+    from .render import render_cloud
     from .io.errors import MessageError
     if args.every < 1:
         raise CliError('--every must be >= 1')
@@ -634,7 +636,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             bad.append(f'cloud {i}: {err}')
             continue
         write_ply(out / f'cloud_{i:04d}.ply', X, rgb)
-        render_png(out / f'cloud_{i:04d}.png', X, rgb)
+        render_cloud(out / f'cloud_{i:04d}.png', X, rgb)
         n += 1
     if n == 0 and not damage:
         raise CliError(f'no readable cloud on {args.topic} in {args.bag}'

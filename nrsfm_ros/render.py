@@ -368,12 +368,16 @@ def write_video(path: str | Path, images: Sequence[np.ndarray], fps: float) -> P
     return path
 
 
-def render_cloud(path: str | Path, X: np.ndarray, shading: str = 'depth',
-                 size: int = 480) -> None:
+def render_cloud(path: str | Path, X: np.ndarray, rgb: np.ndarray | None = None,
+                 shading: str = 'depth', size: int = 480) -> None:
     """PNG of one cloud X (N, 3) alone (no ground truth), in the oblique perspective view of
-    its own centre and extent."""
+    its own centre and extent: coloured by ``rgb`` (N, 3) uint8 where given (the cloud's own
+    colours), else shaded by ``shading``; non-finite points are left out."""
     X = np.asarray(X, dtype=np.float64)
-    X = X[np.isfinite(X).all(axis=1)]
+    finite = np.isfinite(X).all(axis=1)
+    if rgb is not None and np.shape(rgb) != (X.shape[0], 3):
+        raise ValueError(f'rgb: expected shape ({X.shape[0]}, 3), got {np.shape(rgb)}')
+    X = X[finite]
     if X.shape[0] == 0:
         cv2.imwrite(str(path), _blank(orbit_view(np.array([0, 0, 1.0]), 1.0, size), 'no points'))
         return
@@ -381,4 +385,6 @@ def render_cloud(path: str | Path, X: np.ndarray, shading: str = 'depth',
     r = float(np.max(np.linalg.norm(X - c, axis=1))) or 1.0
     view = orbit_view(c, r, size)
     n, sp = cloud_geometry(X)
-    cv2.imwrite(str(path), splat(view, X, shade(view, X, n, shading), sp))
+    colours = shade(view, X, n, shading) if rgb is None else \
+        np.asarray(rgb, np.uint8)[finite][:, ::-1]
+    cv2.imwrite(str(path), splat(view, X, colours, sp))

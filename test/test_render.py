@@ -200,8 +200,9 @@ def test_bad_arguments_name_the_value(tmp_path):
         render.render_stream({9: (S[0], ids)}, S, ids, tmp_path)
 
 
-def write_output_bag(path, S, ids, stamps, displaced_frame=None):
-    """An output bag as process would write it: nrsfm/points clouds of S (x, y, z, track_id)."""
+def write_output_bag(path, S, ids, stamps, displaced_frame=None, rgb=None):
+    """An output bag as process would write it: nrsfm/points clouds of S (x, y, z, track_id,
+    and rgb (P, 3) uint8 packed when given)."""
     fac = RosbagsFactory()
     with BagWriter(path) as w:
         for f, st in enumerate(stamps):
@@ -209,9 +210,11 @@ def write_output_bag(path, S, ids, stamps, displaced_frame=None):
             if f == displaced_frame:
                 X = similar(np.where(region(S[f])[:, None], S[f] - [0, 0, 0.15], S[f]),
                             f).astype(np.float32)
-            msg = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
-                              'track_id': ids.astype(np.uint32)}, fac, int(st),
-                             'camera_optical_frame')
+            cols = {'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2]}
+            if rgb is not None:
+                cols['rgb'] = pc2.pack_rgb(rgb)
+            cols['track_id'] = ids.astype(np.uint32)
+            msg = pc2.to_msg(cols, fac, int(st), 'camera_optical_frame')
             w.write('nrsfm/points', 'sensor_msgs/msg/PointCloud2', msg, int(st))
 
 
@@ -249,3 +252,27 @@ def test_evaluate_render_flags(tmp_path, capsys):
     assert main([*argv, '--shading', 'depth']) == 2
     err = capsys.readouterr().err
     assert err.startswith('error: --shading and --video') and err.count('\n') == 1
+
+
+def test_export_renders_in_perspective_with_the_clouds_colours(tmp_path, capsys):
+    S = sheet(2)
+    ids = np.arange(S.shape[1])
+    stamps = 10 ** 18 + np.arange(2) * 10 ** 8
+    rgb = np.zeros((S.shape[1], 3), np.uint8)
+    rgb[:, 0] = 200                                       # every point red
+    rgb[region(S[0]), 2] = 200                            # the disc magenta
+    write_output_bag(tmp_path / 'c', S, ids, stamps, rgb=rgb)
+    write_output_bag(tmp_path / 'p', S, ids, stamps)
+    assert main(['export', str(tmp_path / 'c'), '--out', str(tmp_path / 'ec')]) == 0
+    assert main(['export', str(tmp_path / 'p'), '--out', str(tmp_path / 'ep')]) == 0
+    img = cv2.imread(str(tmp_path / 'ec' / 'cloud_0000.png'))
+    cloud = (img != np.array(render.BACKGROUND, np.uint8)).any(axis=2)
+    assert 0.1 < cloud.mean() < 0.9
+    b, g, r = (img[cloud][:, k].astype(int) for k in range(3))
+    assert (r == 200).mean() > 0.95 and (g == 0).mean() > 0.95
+    magenta = (b == 200).mean()
+    assert 0.02 < magenta < 0.2                           # the disc, a few % of the sheet
+    plain = cv2.imread(str(tmp_path / 'ep' / 'cloud_0001.png'))
+    assert filled(plain) > 0.1 and len(np.unique(plain.reshape(-1, 3), axis=0)) > 20  # depth
+    with pytest.raises(ValueError, match=r'rgb: expected shape \(2400, 3\)'):
+        render.render_cloud(tmp_path / 'x.png', S[0], rgb[:5])

@@ -1,9 +1,8 @@
-"""PLY export and PNG renders of point clouds (no viewer needed)."""
+"""PLY files of point clouds: binary write, ascii and binary read (renders: nrsfm_ros.render)."""
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 
@@ -79,33 +78,3 @@ def read_ply(path: str | Path) -> np.ndarray:
                          f'{len(body) // dt.itemsize}')
     arr = np.frombuffer(body[:dt.itemsize * count], dtype=dt)
     return np.stack([arr['x'], arr['y'], arr['z']], axis=1).astype(np.float64)
-
-
-def render_png(path: str | Path, points: np.ndarray, rgb: np.ndarray | None = None,
-               size: int = 480, yaw_deg: float = 35.0, pitch_deg: float = 20.0) -> None:
-    """Orthographic splat render from an oblique viewpoint (so depth is visible), painter's
-    order, coloured by ``rgb`` or by depth."""
-    P = np.asarray(points, dtype=np.float64)
-    P = P[np.isfinite(P).all(axis=1)]
-    img = np.full((size, size, 3), 255, np.uint8)
-    if P.shape[0] == 0:
-        cv2.imwrite(str(path), img)
-        return
-    c = P - P.mean(axis=0)
-    y, p = np.radians(yaw_deg), np.radians(pitch_deg)
-    Ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    Rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
-    q = c @ (Rx @ Ry).T
-    ext = max(np.abs(q[:, :2]).max(), 1e-9)
-    uv = (q[:, :2] / ext * 0.45 * size + size / 2).astype(int)
-    if rgb is None:
-        d = (q[:, 2] - q[:, 2].min()) / max(np.ptp(q[:, 2]), 1e-9)
-        colours = cv2.applyColorMap((255 * d).astype(np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)
-        colours = colours[:, 0, :]
-    else:
-        colours = np.asarray(rgb, np.uint8)[np.isfinite(points).all(axis=1)][:, ::-1]
-    order = np.argsort(-q[:, 2])
-    r = max(1, size // 240)
-    for i in order:
-        cv2.circle(img, (int(uv[i, 0]), int(uv[i, 1])), r, colours[i].tolist(), -1)
-    cv2.imwrite(str(path), img)
