@@ -38,6 +38,13 @@ class CliError(Exception):
     pass
 
 
+def _defaults(fn: Callable[..., Any]) -> dict[str, Any]:
+    """The keyword defaults of a core function (what a flag left unset gets)."""
+    import inspect
+    return {k: p.default for k, p in inspect.signature(fn).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='nrsfm-ros', description=__doc__)
     sub = p.add_subparsers(dest='verb', required=True)
@@ -55,27 +62,33 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument('--timeout', type=float, default=60.0,
                    help='seconds to wait for the last outputs after replay (default 60)')
 
-    from .io.synth import SURFACES
+    from .io.synth import SURFACES, SynthConfig
+    sc = SynthConfig()              # the flags' defaults are the synthetic sequence's own
     s = add('synth', 'write a synthetic deforming sequence (MCAP bag + .npz ground truth)')
-    s.add_argument('--surface', choices=SURFACES, default='flag',
-                   help='flag, face, sheet (isometric bending) or sphere (breathing cap)')
-    s.add_argument('--size', default='256x192', help='WIDTHxHEIGHT (default 256x192)')
-    s.add_argument('--frames', type=int, default=60)
-    s.add_argument('--fps', type=float, default=10.0)
-    s.add_argument('--seed', type=int, default=0)
-    s.add_argument('--noise', type=float, default=0.0, help='image noise sigma')
-    s.add_argument('--camera-motion', type=float, default=12.0, metavar='DEG',
-                   help='camera swing amplitude, degrees 0..90 (default 12)')
-    s.add_argument('--amplitude', type=float, default=1.0, metavar='A',
-                   help='deformation amplitude multiplier, 0 = rigid (default 1)')
+    s.add_argument('--surface', choices=SURFACES, default=sc.surface,
+                   help='flag, face, sheet (isometric bending) or sphere (breathing cap); '
+                   f'default {sc.surface}')
+    s.add_argument('--size', default=f'{sc.width}x{sc.height}',
+                   help=f'WIDTHxHEIGHT (default {sc.width}x{sc.height})')
+    s.add_argument('--frames', type=int, default=sc.frames, help=f'(default {sc.frames})')
+    s.add_argument('--fps', type=float, default=sc.fps, help=f'(default {sc.fps:g})')
+    s.add_argument('--seed', type=int, default=sc.seed, help=f'(default {sc.seed})')
+    s.add_argument('--noise', type=float, default=sc.noise,
+                   help=f'image noise sigma (default {sc.noise:g})')
+    s.add_argument('--camera-motion', type=float, default=sc.camera_motion_deg, metavar='DEG',
+                   help='camera swing amplitude, degrees 0..90 '
+                   f'(default {sc.camera_motion_deg:g})')
+    s.add_argument('--amplitude', type=float, default=sc.amplitude, metavar='A',
+                   help=f'deformation amplitude multiplier, 0 = rigid (default {sc.amplitude:g})')
     s.add_argument('--occluder', action='store_true',
                    help='a textured disc sweeps across in front of the surface')
-    s.add_argument('--distance', type=float, default=4.0, metavar='M',
-                   help='camera distance to the surface, metres (default 4)')
-    s.add_argument('--periodic', type=int, default=0, metavar='N',
+    s.add_argument('--distance', type=float, default=sc.distance, metavar='M',
+                   help=f'camera distance to the surface, metres (default {sc.distance:g})')
+    s.add_argument('--periodic', type=int, default=sc.period_frames, metavar='N',
                    help='the deformation repeats every N frames (forwards and back; a '
                    'heartbeat- or breathing-like motion) while the camera moves; 0: off')
-    s.add_argument('--stride', type=int, default=2, help='ground-truth track sampling')
+    s.add_argument('--stride', type=int, default=sc.stride,
+                   help=f'ground-truth track sampling (default {sc.stride})')
     s.add_argument('--out', required=True, help='output bag folder (the .npz goes beside it)')
 
     r = add('record', 'record live topics into an MCAP bag (raw bytes; counts printed)')
@@ -163,7 +176,7 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument('--out', required=True)
     # the tracker node's parameters (params.TrackerParams): the same names, defaults and checks
     from .core.tracking import MASKS, PRESETS
-    from .params import TRACKER_METHODS, TrackerParams
+    from .params import TRACKER_METHODS, SceneFlowParams, TrackerParams
     tp = TrackerParams()
     tr.add_argument('--method', default=None, choices=TRACKER_METHODS,
                     help=f'mfof: multi-frame subspace flow + occlusion tensor; reference: DIS '
@@ -215,18 +228,24 @@ def _parser() -> argparse.ArgumentParser:
                     help='icp, icp-point-to-point, icp-point-to-plane, cpd-rigid, cpd-affine, '
                     'cpd-nonrigid, ga, bhrga, nrga (default icp; ecpd-* need prior matches, '
                     'which the registrar node takes from track ids)')
-    rg.add_argument('--init', choices=('centroid', 'global'), default=None,
-                    help='icp*: centroid (default) or global (search over all rotations, '
-                    'robust to outliers and missing parts)')
+    # unset flags take the core functions' defaults, which the help quotes
+    from .core.registration import cpd, icp
+    icp_d, cpd_d = _defaults(icp), _defaults(cpd)
+    rg.add_argument('--init', choices=('centroid', 'global', 'identity'), default=None,
+                    help=f'icp*: centroid, global (search over all rotations, robust to outliers '
+                    f"and missing parts) or identity (default {icp_d['init']})")
     rg.add_argument('--voxel', type=float, default=None,
-                    help='icp*: coarse-to-fine voxel edge in input units (default 0: off)')
+                    help=f"icp*: coarse-to-fine voxel edge in input units (default "
+                    f"{icp_d['voxel']:g}: off)")
     rg.add_argument('--trim', type=float, default=None,
-                    help='icp*: fraction of closest pairs kept (default 0.9; about the overlap)')
-    rg.add_argument('--w', type=float, default=None, help='cpd: outlier weight (default 0.1)')
+                    help=f"icp*: fraction of closest pairs kept (default {icp_d['trim']:g}; "
+                    'about the overlap)')
+    rg.add_argument('--w', type=float, default=None,
+                    help=f"cpd: outlier weight (default {cpd_d['w']:g})")
     rg.add_argument('--beta', type=float, default=None,
-                    help='cpd-nonrigid: kernel width in RMS radii (default 2.0)')
+                    help=f"cpd-nonrigid: kernel width in RMS radii (default {cpd_d['beta']:g})")
     rg.add_argument('--lam', type=float, default=None,
-                    help='cpd-nonrigid: field smoothness (default 2.0)')
+                    help=f"cpd-nonrigid: field smoothness (default {cpd_d['lam']:g})")
     rg.add_argument('--out', required=True)
 
     sf = add('scene-flow', 'RGB-D scene flow (MSF, piecewise rigid) of a folder -> flow.npz: '
@@ -238,7 +257,9 @@ def _parser() -> argparse.ArgumentParser:
     sf.add_argument('--method', choices=('msf', 'dis', 'icp'), default='msf',
                     help='msf (default), dis (DIS optical flow + depth) or icp (per-segment '
                     'projective ICP)')
-    sf.add_argument('--segments', type=int, default=300, help='msf/icp: SLIC segments')
+    sf.add_argument('--segments', type=int, default=SceneFlowParams().segments,
+                    help='msf/icp: SLIC segments (default: the scene_flow node\'s, '
+                    f'{SceneFlowParams().segments})')
 
     vw = add('view', 'Foxglove WebSocket server: plays a bag, or bridges the live topics '
              '(without BAG): clouds, images, depth, scene-flow arrows, camera pose')

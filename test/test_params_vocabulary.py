@@ -286,3 +286,27 @@ def test_track_verb_takes_the_node_parameters(tmp_path, capsys):
     assert cli.main(['track', str(tmp_path), '--out', str(tmp_path / 'd.npz')]) == 0
     n_default = np.load(tmp_path / 'd.npz')['W'].shape[1]
     assert 0 < n_default <= 24 * 32           # stride 2 (the node's default), texture mask
+
+
+def test_cli_defaults_are_the_cores():
+    """Flags left unset mean what the core (or the node) means: synth's are SynthConfig's,
+    scene-flow's segments the node's (= MSFConfig's), register's help quotes icp's and cpd's."""
+    from nrsfm_ros.io.synth import SynthConfig
+    parser = cli._parser()
+    a = parser.parse_args(['synth', '--out', 'x'])
+    sc = SynthConfig()
+    assert cli._size(a.size) == (sc.width, sc.height)
+    assert (a.surface, a.frames, a.fps, a.seed, a.noise, a.camera_motion, a.amplitude,
+            a.distance, a.periodic, a.stride, a.occluder) == (
+        sc.surface, sc.frames, sc.fps, sc.seed, sc.noise, sc.camera_motion_deg, sc.amplitude,
+        sc.distance, sc.period_frames, sc.stride, sc.occluder)
+    a = parser.parse_args(['scene-flow', 'd', '--out', 'x'])
+    assert a.segments == SceneFlowParams().segments == MSFConfig().segments
+    a = parser.parse_args(['track', 'd', '--out', 'x'])
+    assert all(getattr(a, k) is None for k in cli.TRACK_FLAGS)     # TrackerParams decides
+    sub = next(x for x in parser._actions if hasattr(x, 'choices') and
+               isinstance(x.choices, dict)).choices
+    text = ' '.join(sub['register'].format_help().split())
+    for flag, value in (('trim', _ICP['trim']), ('w', _CPD['w']), ('init', _ICP['init'])):
+        assert f'(default {value:g}' in text if not isinstance(value, str) else \
+            f'(default {value})' in text, flag
