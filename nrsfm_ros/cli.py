@@ -204,10 +204,16 @@ def _parser() -> argparse.ArgumentParser:
                     'or va (Garg variational: cdf + spatial Huber-TV on the image grid) or '
                     'planar (planar rest shape deforming out of its plane: cloth, paper, flag) '
                     'or dspr (dynamic shape prior: the first --batch-frames frames solved by '
-                    'auto, then frame by frame; recurring states stored as camera + index)')
+                    'auto, then frame by frame; recurring states stored as camera + index) '
+                    'or spva (shape prior from the least-occluded frames of a cdf solve, '
+                    'then every frame by the variational energy with the prior weighted by '
+                    'the occlusion 1 - V; --rank is its subspace rank, default 4)')
     rc.add_argument('--batch-frames', type=int, default=None, metavar='N',
                     help='dspr: frames of the initial batch that builds the prior (default '
                     'min(60, F/2))')
+    rc.add_argument('--prior-frames', type=int, default=None, metavar='N',
+                    help='spva: least-occluded frames (total occlusion sum_p 1 - V) the shape '
+                    'prior is built from (default 10, at most the frames)')
     rc.add_argument('--rank', type=int, default=None,
                     help='K: lowrank shape rank (default 3); bmm/smsr motion rank (default: '
                     'automatic, cameras averaged over K=2..6); hdsm: lifted dimension D '
@@ -890,10 +896,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.method not in METHODS:
         raise CliError(f'--method {args.method!r}: expected one of '
                        f'{sorted([*METHODS, "dspr"])}')
+    if args.prior_frames is not None and args.method != 'spva':
+        raise CliError(f'--prior-frames applies to --method spva, not {args.method}')
     if args.method in ('rigid', 'cdf', 'va', 'planar'):
         if args.rank is not None:
             raise CliError(f'--rank does not apply to --method {args.method}')
         kw = {}
+    elif args.method == 'spva':
+        kw = {k: v for k, v in (('rank', args.rank), ('prior_frames', args.prior_frames))
+              if v is not None}
     elif args.method == 'hdsm':
         kw = {'dim': args.rank if args.rank is not None else 9}
     else:

@@ -55,6 +55,10 @@ def _unit(v: Any) -> str | None:
     return None if 0 < v <= 1 else 'must be in (0, 1]'
 
 
+def _unit_or_zero(v: Any) -> str | None:
+    return None if 0 <= v <= 1 else 'must be in [0, 1]'
+
+
 @dataclass(frozen=True)
 class Params:
     """Base: ``validate`` returns a list of (name, reason); ``updated`` validates a change."""
@@ -176,14 +180,17 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr'),
+    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr', 'spva'),
                      'batch: batch_frames frames at a time with method (the most accurate on '
                      'the pipeline benchmark); window: sliding window re-solved per frame '
                      '(lowest latency); online: the first window, then each frame fitted alone '
                      'to its shape basis; dspr: the first batch as batch, then each frame '
                      'matched against a dynamic shape prior of distinct states (a recurring '
                      'state stored as camera + index: compression; else a per-frame energy, '
-                     'the new shape joining the prior)')
+                     'the new shape joining the prior); spva: the first batch as batch, a '
+                     'shape prior from its least-occluded frames, then each frame by the '
+                     'variational energy (visible tracks, Huber-TV on the track grid, the '
+                     "batch's shape subspace) plus the prior weighted by the occlusion")
     method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
                                        'hdsm', 'va', 'planar'),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
@@ -210,6 +217,23 @@ class ReconstructorParams(Params):
     dspr_prior_weight: float = rule(0.01, _positive,
                                     'dspr: weight of the closeness to the prior states against '
                                     'the data term (px^2) in the per-frame energy')
+    spva_prior_frames: int = rule(10, _at_least(1),
+                                  'spva: least-occluded frames of the first batch (total '
+                                  'occlusion sum_p (1 - visibility)) the shape prior is the '
+                                  'mean of; at most batch_frames')
+    spva_weighting: str = rule('pixel', _one_of('pixel', 'frame', 'sequence'),
+                               "spva: the prior term's weight: pixel (each track's occlusion "
+                               "1 - visibility), frame (the frame's mean occlusion) or sequence "
+                               '(1 everywhere)')
+    spva_prior_weight: float = rule(10.0, _non_negative,
+                                    'spva: weight of the prior term against the data term '
+                                    '(0: no prior, the variational energy alone)')
+    spva_smoothness: float = rule(0.05, _non_negative,
+                                  'spva: weight of the Huber total variation of the shape on '
+                                  'the track grid (px per edge)')
+    spva_refresh: float = rule(0.0, _unit_or_zero,
+                               'spva: rate at which the prior follows the visible tracks\' '
+                               'shapes after each frame (0: fixed prior)')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
                              'scale of the metric output, which one camera cannot observe')
     publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '
@@ -223,6 +247,14 @@ class ReconstructorParams(Params):
     reliable: bool = rule(True, None, 'reliable QoS on the tracks input')
     queue_size: int = _queue_size()
     queue_policy: str = _queue_policy()
+
+    def check(self) -> list[tuple[str, str]]:
+        errors = super().check()
+        if self.mode == 'spva' and self.spva_prior_frames > self.batch_frames:
+            errors.append(('spva_prior_frames', f'spva_prior_frames={self.spva_prior_frames}: '
+                           f'must be <= batch_frames ({self.batch_frames}), the frames it '
+                           'is chosen from'))
+        return errors
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .core.nrsfm.stream import StreamNRSfM, StreamShape
+from .core.nrsfm.spva import ShapePrior
 from .core.depth import depth_image
 from .core.registration import register
 from .core.registration.base import make_result, resolve_threshold, robust_residual
@@ -327,7 +328,10 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
               iterations=params.iterations, method=params.method,
               batch_frames=params.batch_frames, projection=params.projection,
               dspr_recurrence_px=params.dspr_recurrence_px, dspr_distinct=params.dspr_distinct,
-              dspr_prior_weight=params.dspr_prior_weight)
+              dspr_prior_weight=params.dspr_prior_weight,
+              spva_prior_frames=params.spva_prior_frames, spva_weighting=params.spva_weighting,
+              spva_prior_weight=params.spva_prior_weight,
+              spva_smoothness=params.spva_smoothness, spva_refresh=params.spva_refresh)
     return StreamNRSfM(**{**kw, **overrides})
 
 
@@ -366,7 +370,7 @@ class ReconstructorProcessor(Processor):
     def status(self) -> dict[str, str]:
         """Batch solves won by the perspective model, the last batch solve's method (what
         ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
-        prior."""
+        prior; spva: the frames (of the first batch) its shape prior was built from."""
         s = self.stream
         out = {'perspective_solves': str(s.perspective_solves)}
         if s.last_method:
@@ -374,6 +378,9 @@ class ReconstructorProcessor(Processor):
         if self.params.mode == 'dspr':
             out['compression_ratio'] = f'{s.compression_ratio:.2f}'
             out['dspr_new_tracks'] = str(s.dspr_new_tracks)
+        if self.params.mode == 'spva':      # the frames the prior was built from, once it is
+            out['spva_prior_frames'] = ','.join(str(int(f)) for f in s.prior.frames) \
+                if isinstance(s.prior, ShapePrior) else ''
         return out
 
     def on_camera_info(self, msg: Any) -> list[Output]:

@@ -13,6 +13,7 @@ from .dspr import DynamicShapePrior
 from .hdsm import hdsm
 from .factorization import low_rank, rigid
 from .planar import planar
+from .spva import ShapePrior, spva
 from .va import va
 from .result import NRSfMResult, check_tracks
 from .stream import StreamNRSfM
@@ -27,6 +28,7 @@ METHODS: dict[str, Callable[..., NRSfMResult]] = {
     'hdsm': hdsm,
     'va': va,
     'planar': planar,
+    'spva': spva,
 }
 
 
@@ -39,5 +41,6 @@ def reconstruct(W: np.ndarray, V: np.ndarray | None = None, method: str = 'bmm',
     return METHODS[method](W, V, **params)
 
 
-__all__ = ['METHODS', 'DynamicShapePrior', 'NRSfMResult', 'StreamNRSfM', 'check_tracks',
+__all__ = ['METHODS', 'DynamicShapePrior', 'NRSfMResult', 'ShapePrior', 'StreamNRSfM',
+           'check_tracks',
            'low_rank', 'reconstruct', 'rigid']

@@ -26,6 +26,12 @@ there.  Modes (the reconstructor's ``mode``):
   its first shape) from every state.  ``compression_ratio`` =
   frames / states.  Tracks new since the prior get the depth of their nearest prior tracks in
   the image (``dspr_new_tracks`` counts them).
+* ``spva``: the first ``batch_frames`` frames solved as ``batch``; the ``spva_prior_frames``
+  least occluded of them (total-intensity criterion on the visibility) give a shape prior and the
+  batch's shapes a low-rank subspace (:mod:`.spva`); the batch frames are re-solved with the
+  prior and published together, then each frame alone: data on the visible tracks, Huber-TV on
+  the track grid, the subspace and the prior weighted by the occlusion (``spva_weighting``),
+  the prior refreshed at ``spva_refresh``.  New tracks as in ``dspr``.
 
 Gauge: every shape is in its frame's camera frame in image units (x, y the centred pixel
 coordinates), so rotation and scale are fixed by the data; the remaining depth reflection is
@@ -45,8 +51,9 @@ from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import RATIO_RANGE, check_intrinsics, perspective_solve
 from .result import NRSfMResult
+from .spva import WEIGHTINGS, ShapePrior
 
-MODES = ('window', 'online', 'batch', 'dspr')
+MODES = ('window', 'online', 'batch', 'dspr', 'spva')
 PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
@@ -98,7 +105,10 @@ class StreamNRSfM:
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
                  solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
                  projection: str = 'weak', dspr_recurrence_px: float = 0.0,
-                 dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01) -> None:
+                 dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01,
+                 spva_prior_frames: int = 10, spva_weighting: str = 'pixel',
+                 spva_prior_weight: float = 10.0, spva_smoothness: float = 0.05,
+                 spva_refresh: float = 0.0) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if projection not in PROJECTIONS:
@@ -122,8 +132,22 @@ class StreamNRSfM:
             raise ValueError(f'dspr_prior_weight: expected > 0, got {dspr_prior_weight}')
         self.dspr_recurrence_px, self.dspr_distinct = dspr_recurrence_px, dspr_distinct
         self.dspr_prior_weight = dspr_prior_weight
+        if not 1 <= spva_prior_frames <= (batch_frames if mode == 'spva' else np.inf):
+            raise ValueError(f'spva_prior_frames: expected 1..batch_frames ({batch_frames}), '
+                             f'got {spva_prior_frames}')
+        if spva_weighting not in WEIGHTINGS:
+            raise ValueError(f'spva_weighting={spva_weighting!r}: expected one of {WEIGHTINGS}')
+        for name, v in (('spva_prior_weight', spva_prior_weight),
+                        ('spva_smoothness', spva_smoothness)):
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f'{name}: expected a finite value >= 0, got {v}')
+        if not (np.isfinite(spva_refresh) and 0 <= spva_refresh <= 1):
+            raise ValueError(f'spva_refresh: expected 0..1, got {spva_refresh}')
+        self.spva = dict(prior_frames=int(spva_prior_frames), weighting=spva_weighting,
+                         prior_weight=float(spva_prior_weight),
+                         smoothness=float(spva_smoothness), refresh=float(spva_refresh))
         self._solver = solver or _solve_default
-        size = batch_frames if mode in ('batch', 'dspr') else window
+        size = batch_frames if mode in ('batch', 'dspr', 'spva') else window
         self._frames: deque[_Frame] = deque(maxlen=size)
         self._pending: list[_Frame] = []          # pushed, no shape published yet
         self._published: deque[StreamShape] = deque(maxlen=size)
@@ -135,7 +159,7 @@ class StreamNRSfM:
         self.fallbacks: list[tuple[int, str]] = []   # (frame, why) published by a fallback
         self._flip = np.ones(3)                       # reflection of the last _emit
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
-        self.prior: DynamicShapePrior | None = None   # dspr: the dynamic shape prior
+        self.prior: DynamicShapePrior | ShapePrior | None = None   # dspr / spva: the prior
         self._batch_perspective = False               # the last batch solve was perspective
         self._prior_perspective = False
         self._prior_ids = np.empty(0, np.int64)
@@ -146,7 +170,8 @@ class StreamNRSfM:
     def compression_ratio(self) -> float:
         """dspr: frames represented by the prior / its states (1.0 before it exists and in
         the other modes, which store every shape)."""
-        return self.prior.compression_ratio if self.prior is not None else 1.0
+        return self.prior.compression_ratio if isinstance(self.prior, DynamicShapePrior) \
+            else 1.0
 
     @property
     def dspr_new_tracks(self) -> int:
@@ -177,12 +202,12 @@ class StreamNRSfM:
         self._count += 1
         self._frames.append(fr)
         self._pending.append(fr)
-        if self.mode == 'dspr' and self.prior is not None:
+        if self.mode in ('dspr', 'spva') and self.prior is not None:
             return [self._publish(self._step_dspr(fr))]
-        if self.mode in ('batch', 'dspr'):
+        if self.mode in ('batch', 'dspr', 'spva'):
             if len(self._pending) < self.batch_frames:
                 return []
-            out = self._solve_batch(list(self._pending))
+            out = self._solve_batch(list(self._pending), self.mode == 'spva')
             if self.mode == 'dspr':
                 self._build_prior()
             return out
@@ -203,7 +228,8 @@ class StreamNRSfM:
         if not self._pending:
             return []
         if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
-            return self._solve_batch(list(self._pending)) if self.mode in ('batch', 'dspr') \
+            return self._solve_batch(list(self._pending)) \
+                if self.mode in ('batch', 'dspr', 'spva') \
                 else self._solve_window()
         # a single frame: no depth is observable; its points at the centroid's depth
         return [self._publish(_flat_shape(fr)) for fr in list(self._pending)]
@@ -243,12 +269,14 @@ class StreamNRSfM:
             self._init_basis(ids, res)
         return out
 
-    def _solve_batch(self, frames: list[_Frame]) -> list[StreamShape]:
+    def _solve_batch(self, frames: list[_Frame], spva: bool = False) -> list[StreamShape]:
         ids, W, V = self._tracks(frames)
         if len(frames) == 2:
             res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
             res = self._safe(lambda: self._batch_solve(W, V), W, V, frames)
+        if spva and res.method != 'flat':
+            res = self._spva_prior(ids, W, V, res)
         out = self._emit(frames, ids, res, list(self._pending))
         self._batch_last = (ids, res, self._flip)
         return out
@@ -350,6 +378,25 @@ class StreamNRSfM:
         self._published.append(shape)
         return shape
 
+    # ------------------------------------------------------------------ spva
+    def _spva_prior(self, ids: np.ndarray, W: np.ndarray, V: np.ndarray, res: NRSfMResult
+                    ) -> NRSfMResult:
+        """spva: the shape prior from the first batch's solve, then the batch re-solved with
+        it (the result published); the batch solve itself where that fails (in fallbacks)."""
+        try:
+            prior = ShapePrior.from_batch(res, W, V, **self.spva)
+            out = prior.solve(W, V)
+            if not (np.isfinite(out.S).all() and np.isfinite(out.t).all()):
+                raise ArithmeticError('non-finite shapes')
+        except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
+            pending = {f.index for f in self._pending}
+            self.fallbacks += [(i, f'spva: {type(err).__name__}: {err}')
+                               for i in sorted(pending)]
+            return res
+        self.prior, self._prior_ids = prior, ids
+        self._prior_perspective = self._batch_perspective
+        return out
+
     # ------------------------------------------------------------------ dspr
     def _build_prior(self) -> None:
         """The dynamic shape prior from the first batch's object-frame shapes, in the depth
@@ -398,7 +445,7 @@ class StreamNRSfM:
         except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
             self.fallbacks.append((fr.index, f'dspr: {type(err).__name__}: {err}'))
             return _flat_shape(fr)
-        self.dspr_seconds.append(out.seconds)
+        self.dspr_seconds.append(out.seconds)      # (spva too: per-frame seconds)
         X = np.empty((fr.ids.size, 3))
         X[have] = out.X[col[have]]
         if (~have).any():

@@ -1,0 +1,271 @@
+"""SPVA (core.nrsfm.spva): the total-intensity frame selection, the prior weights, accuracy on a
+deforming face behind a sweeping occluder (occluded tracks stuck to the occluder, soft
+visibility) against the same solver without the prior and the static / rigid baselines, on the
+occluded points in particular; the prior refresh; the reconstructor's spva mode (streaming
+after the prior); parameter validation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nrsfm_ros.core.metrics import batched_procrustes
+from nrsfm_ros.core.nrsfm import reconstruct
+from nrsfm_ros.core.nrsfm.spva import (ShapePrior, prior_weights, select_prior_frames, spva,
+                                       total_occlusion)
+from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+from nrsfm_ros.io.synth import dense_tracks
+from nrsfm_ros.params import ReconstructorParams
+from nrsfm_ros.processing import make_stream
+
+OCCLUDED = (20, 50)      # frames the occluder crosses
+
+
+def occluded_sequence(points: int = 600, soft: float = 0.25, seed: int = 0) -> dict:
+    """A face (amplitude 2, camera 40 deg) whose tracks a disc covering 30% of the surface
+    crosses in OCCLUDED frames: the covered tracks stick to the disc (as a flow tracker's do)
+    with visibility ``soft``.  Returns W, V, occ (F, P) bool, S ground truth."""
+    d = dense_tracks('face', frames=60, points=points, camera_motion_deg=40, sampling='grid',
+                     seed=seed, amplitude=2)
+    F, P = d['V'].shape
+    Wf = d['W'].reshape(F, 2, P)
+    out = Wf.copy()
+    lo, hi = Wf[0].min(1), Wf[0].max(1)
+    r = np.sqrt(0.3 * (hi - lo).prod() / np.pi)
+    occ = np.zeros((F, P), bool)
+    anchor = np.zeros((2, P))
+    was = np.zeros(P, bool)
+    for f in range(*OCCLUDED):
+        s = (f - OCCLUDED[0] + 0.5) / (OCCLUDED[1] - OCCLUDED[0])
+        c = np.array([lo[0] + s * (hi[0] - lo[0]), lo[1] + (0.3 + 0.4 * s) * (hi[1] - lo[1])])
+        occ[f] = ((Wf[f].T - c) ** 2).sum(1) <= r * r
+        new = occ[f] & ~was
+        anchor[:, new] = Wf[f][:, new] - c[:, None]
+        out[f][:, occ[f]] = anchor[:, occ[f]] + c[:, None]
+        was = occ[f]
+    V = np.where(occ, soft, 1.0)
+    return {'W': out.reshape(2 * F, P), 'V': V, 'occ': occ, 'S': d['S']}
+
+
+def errors(S: np.ndarray, S_gt: np.ndarray, occ: np.ndarray) -> tuple[float, float, float]:
+    """Metric B (per-frame Procrustes + scale, mean over frames), and the RMS point error
+    (relative to the frame's RMS radius) on the occluded points and on the visible points of
+    the occluded frames."""
+    A = batched_procrustes(S - S.mean(1, keepdims=True), S_gt - S_gt.mean(1, keepdims=True),
+                           scale=True)
+    B = S_gt - S_gt.mean(1, keepdims=True)
+    e3d = float(np.mean(np.linalg.norm((A - B).reshape(len(A), -1), axis=1)
+                        / np.linalg.norm(B.reshape(len(B), -1), axis=1)))
+    rel = np.linalg.norm(A - B, axis=2) / np.sqrt((B ** 2).sum(2).mean(1))[:, None]
+    frames = occ.any(1)
+    return (e3d, float(np.sqrt(np.mean(rel[occ] ** 2))),
+            float(np.sqrt(np.mean(rel[frames][~occ[frames]] ** 2))))
+
+
+@pytest.fixture(scope='module')
+def occluded():
+    d = occluded_sequence()
+    d['cdf'] = reconstruct(d['W'], d['V'], method='cdf')
+    return d
+
+
+def test_total_intensity_criterion_picks_the_least_occluded_frames():
+    V = np.ones((8, 50))
+    V[[1, 2, 5], :20] = 0.0              # heavily occluded
+    V[3, :5] = 0.5                       # a little
+    V[6, :1] = 0.9                       # barely
+    np.testing.assert_allclose(total_occlusion(V), [0, 20, 20, 2.5, 0, 20, 0.1, 0])
+    np.testing.assert_array_equal(select_prior_frames(V, 3), [0, 4, 7])
+    np.testing.assert_array_equal(select_prior_frames(V, 5), [0, 3, 4, 6, 7])
+    np.testing.assert_array_equal(select_prior_frames(V, 2, among=4), [0, 3])  # "at the start"
+    with pytest.raises(ValueError, match='prior_frames'):
+        select_prior_frames(V, 5, among=4)
+    with pytest.raises(ValueError, match='among'):
+        select_prior_frames(V, 1, among=9)
+    with pytest.raises(ValueError, match='V'):
+        total_occlusion(V * 2)
+
+
+def test_prior_weights_per_pixel_frame_and_sequence():
+    v = np.array([[1.0, 0.0, 0.5, 1.0], [0.2, 0.2, 1.0, 1.0]])
+    np.testing.assert_allclose(prior_weights(v, 'pixel'), 1 - v)
+    np.testing.assert_allclose(prior_weights(v, 'frame'), [[0.375] * 4, [0.4] * 4])
+    np.testing.assert_allclose(prior_weights(v, 'sequence'), np.ones_like(v))
+    with pytest.raises(ValueError, match='weighting'):
+        prior_weights(v, 'pixels')
+
+
+def test_spva_beats_the_solver_without_the_prior_and_the_baselines_on_occluded_points(occluded):
+    """The prior from the least-occluded frames of the cdf solve; every frame re-solved: e3D
+    and the error on the occluded points well under the same solver without the prior
+    (prior_weight 0: the tracks stuck to the occluder pull it), the static oracle (ground
+    truth frame 0 repeated) and the rigid factorisation, computed here.  Measured (600
+    tracks): e3D 0.027 / no prior 0.050 / static 0.054 / rigid 0.070; occluded 0.039 / 0.129 /
+    0.070 / 0.069; occluded / visible 1.43 (no prior 1.98; issue target 1.2: not met)."""
+    d = occluded
+    W, V, S, occ = d['W'], d['V'], d['S'], d['occ']
+    with_prior = errors(spva(W, V, init=d['cdf']).S, S, occ)
+    without = errors(spva(W, V, init=d['cdf'], prior_weight=0.0).S, S, occ)
+    static = errors(np.broadcast_to(S[0], S.shape), S, occ)
+    rigid = errors(reconstruct(W, V, method='rigid').S, S, occ)
+    for base in (without, static, rigid):
+        assert with_prior[0] < 0.7 * base[0], (with_prior, base)
+        assert with_prior[1] < 0.7 * base[1], (with_prior, base)
+    assert with_prior[1] < 0.4 * without[1]
+    assert with_prior[1] / with_prior[2] < 0.8 * without[1] / without[2]
+
+
+def test_weighting_variants_and_frame_selection_inside_the_solver(occluded):
+    """The selected prior frames are the unoccluded ones; every weighting variant beats the
+    solver without the prior on the occluded points (pixel measured 0.039, frame 0.07x,
+    sequence 0.04x, none 0.129)."""
+    d = occluded
+    W, V, S, occ = d['W'], d['V'], d['S'], d['occ']
+    prior = ShapePrior.from_batch(d['cdf'], W, V, prior_frames=10)
+    assert not occ[prior.frames].any() and prior.frames.size == 10
+    none = errors(ShapePrior.from_batch(d['cdf'], W, V, prior_weight=0.0).solve(W, V).S, S, occ)
+    for weighting in ('pixel', 'frame', 'sequence'):
+        e = errors(ShapePrior.from_batch(d['cdf'], W, V, weighting=weighting).solve(W, V).S,
+                   S, occ)
+        assert e[1] < 0.8 * none[1], (weighting, e, none)
+
+
+def test_refresh_follows_the_visible_tracks_and_keeps_the_hidden_prior():
+    d = dense_tracks('flag', frames=12, points=400, sampling='grid', seed=2)
+    F, P = d['V'].shape
+    shapes = d['S_world'] * 500.0
+    ref = d['W'][:2].T
+    vis = np.ones(P)
+    vis[:100] = 0.0
+    for rate, moved in ((0.0, False), (0.5, True)):
+        prior = ShapePrior(shapes[:6], np.ones((6, P)), ref, prior_frames=3, refresh=rate)
+        T0 = prior.T.copy()
+        out = prior.step(d['W'][20:22].T, vis)
+        np.testing.assert_allclose(prior.T[:100], T0[:100])          # hidden: kept
+        change = np.abs(prior.T[100:] - T0[100:]).max()
+        assert (change > 1e-3) == moved, change
+        if moved:                       # half way to the solved shape where seen
+            np.testing.assert_allclose(prior.T[100:], 0.5 * (T0[100:] + out.X_object[100:]))
+
+
+def test_bad_parameters_name_the_field(occluded):
+    d = occluded
+    W, V = d['W'], d['V']
+    for kw, name in ((dict(weighting='pixels'), 'weighting'), (dict(prior_weight=-1.0),
+                     'prior_weight'), (dict(smoothness=np.nan), 'smoothness'),
+                     (dict(refresh=1.5), 'refresh'), (dict(rank=0), 'rank'),
+                     (dict(iterations=0), 'iterations'), (dict(prior_frames=0), 'prior_frames'),
+                     (dict(prior_frames=61), 'prior_frames'), (dict(init='spva'), 'init')):
+        with pytest.raises(ValueError, match=name):
+            spva(W, V, **({'init': d['cdf']} | kw))
+    prior = ShapePrior.from_batch(d['cdf'], W, V)
+    with pytest.raises(ValueError, match='uv'):
+        prior.step(np.zeros((5, 2)))
+    with pytest.raises(ValueError, match='vis'):
+        prior.step(W[:2].T, np.zeros(W.shape[1]))
+    for kw, name in ((dict(spva_prior_frames=61), 'spva_prior_frames'),
+                     (dict(spva_weighting='all'), 'spva_weighting'),
+                     (dict(spva_prior_weight=-1.0), 'spva_prior_weight'),
+                     (dict(spva_smoothness=-1.0), 'spva_smoothness'),
+                     (dict(spva_refresh=2.0), 'spva_refresh')):
+        with pytest.raises(ValueError, match=name):
+            StreamNRSfM(mode='spva', batch_frames=60, **kw)
+    StreamNRSfM(mode='batch', batch_frames=5)          # spva_prior_frames only binds in spva
+    errs = ReconstructorParams(mode='spva', batch_frames=20, spva_prior_frames=30).check()
+    assert [n for n, _ in errs] == ['spva_prior_frames']
+    with pytest.raises(ValueError, match='spva_weighting'):
+        ReconstructorParams().updated({'spva_weighting': 'voxel'})
+
+
+def test_stream_spva_publishes_every_frame_and_streams_after_the_prior():
+    """mode spva: nothing until the first batch, then its frames re-solved with the prior,
+    then one shape per frame (timed in dspr_seconds); a track new since the prior gets its
+    neighbours' depth; the parameters reach the stream through make_stream; the prior term
+    makes the occluded points better than the same stream without it."""
+    d = occluded_sequence(points=400)
+    W, V, S, occ = d['W'], d['V'], d['S'], d['occ']
+    F, P = V.shape
+    params = ReconstructorParams(mode='spva', method='cdf', batch_frames=30,
+                                 spva_prior_frames=8, spva_weighting='pixel',
+                                 spva_smoothness=0.1, spva_refresh=0.0)
+    runs = {}
+    for gamma in (10.0, 0.0):
+        s = make_stream(params, spva_prior_weight=gamma)
+        assert (s.mode, s.spva['prior_frames'], s.spva['smoothness']) == ('spva', 8, 0.1)
+        got: dict[int, np.ndarray] = {}
+        for f in range(F):
+            ids = np.arange(P) if f != 45 else np.append(np.arange(P), 10_000)
+            uv = W[2 * f:2 * f + 2].T
+            vis = V[f]
+            if f == 45:
+                uv, vis = np.vstack([uv, uv[:1] + 1.0]), np.append(vis, 1.0)
+            out = s.push(ids, uv, vis)
+            assert len(out) == (30 if f == 29 else 0 if f < 29 else 1)
+            for sh in out:
+                got[sh.index] = sh.X[:P]
+                if sh.index == 45:
+                    assert sh.ids[-1] == 10_000 and np.isfinite(sh.X[-1]).all()
+        assert s.flush() == [] and sorted(got) == list(range(F)) and not s.fallbacks
+        assert isinstance(s.prior, ShapePrior) and len(s.dspr_seconds) == F - 30
+        assert s.dspr_new_tracks == 1 and s.compression_ratio == 1.0
+        runs[gamma] = errors(np.stack([got[f] for f in range(F)]), S, occ)
+    assert runs[10.0][1] < 0.8 * runs[0.0][1], runs
+
+
+def test_per_frame_latency_at_10k_points():
+    """One frame after the prior at 10k tracks (issue target 20 ms on 2 cores, measured in
+    BENCHMARKS.md; asserted loosely here, the machine is shared)."""
+    d = dense_tracks('face', frames=24, points=10_000, camera_motion_deg=40, sampling='grid')
+    P = d['W'].shape[1]
+    prior = ShapePrior(d['S_world'][:12] * 500.0, np.ones((12, P)), d['W'][:2].T)
+    vis = np.ones(P)
+    vis[:3000] = 0.2
+    for f in range(12, 24):
+        prior.step(d['W'][2 * f:2 * f + 2].T, vis)
+    assert np.median(prior.seconds) < 0.5
+
+
+def test_cli_reconstruct_spva(tmp_path, capsys):
+    """`reconstruct --method spva [--prior-frames N] [--rank K]` on a W/V npz: every frame,
+    better than the static oracle; flags that do not apply are refused."""
+    from nrsfm_ros.cli import main
+    d = occluded_sequence(points=300)
+    np.savez(tmp_path / 'tracks.npz', W=d['W'], V=d['V'])
+    assert main(['reconstruct', str(tmp_path / 'tracks.npz'), '--method', 'spva',
+                 '--prior-frames', '8', '--rank', '3', '--out', str(tmp_path / 's.npz')]) == 0
+    assert '(spva, rank 3' in capsys.readouterr().out
+    r = np.load(tmp_path / 's.npz')
+    S = d['S']
+    assert r['S'].shape == S.shape and np.isfinite(r['S']).all()
+    assert errors(r['S'], S, d['occ'])[0] < 0.8 * errors(np.broadcast_to(S[0], S.shape), S,
+                                                         d['occ'])[0]
+    for bad, text in ((['--method', 'bmm', '--prior-frames', '5'], 'applies to --method spva'),
+                      (['--method', 'spva', '--prior-frames', '61'], 'prior_frames')):
+        assert main(['reconstruct', str(tmp_path / 'tracks.npz'), *bad, '--out',
+                     str(tmp_path / 'x.npz')]) != 0
+        assert text in capsys.readouterr().err
+
+
+def test_process_bag_with_the_reconstructor_in_spva_mode(tmp_path):
+    """`process` (tracker -> reconstructor) on a rendered bag with the occluder, reconstructor
+    `mode: spva` from a params file: a cloud per frame, and the report's status names the
+    frames the prior was built from (the least occluded of the first batch)."""
+    import json
+
+    from nrsfm_ros.cli import main
+    from nrsfm_ros.io.sequence_bag import write_sequence_bag
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    cfg = SynthConfig(surface='face', width=128, height=96, frames=20, camera_motion_deg=30.0,
+                      occluder=True)
+    write_sequence_bag(generate(cfg), tmp_path / 'in')
+    params = tmp_path / 'params'
+    params.mkdir()
+    (params / 'reconstructor.yaml').write_text(
+        'reconstructor:\n  ros__parameters:\n    mode: spva\n    batch_frames: 10\n'
+        '    spva_prior_frames: 4\n')
+    assert main(['process', str(tmp_path / 'in'), '--out', str(tmp_path / 'out'), '--pipeline',
+                 'tracker,reconstructor', '--params', str(params), '--report',
+                 str(tmp_path / 'r.json'), '--no-progress']) == 0
+    report = json.loads((tmp_path / 'r.json').read_text())
+    assert report['outputs']['nrsfm/points'] == cfg.frames
+    frames = report['status']['reconstructor']['spva_prior_frames'].split(',')
+    assert len(frames) == 4 and all(0 <= int(f) < 10 for f in frames)
