@@ -14,6 +14,7 @@ from nrsfm_ros.core.nrsfm.spva import (ShapePrior, prior_weights, select_prior_f
                                        total_occlusion)
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
 from nrsfm_ros.io.synth import dense_tracks
+from nrsfm_ros.io.synth_occlusion import occlude_tracks
 from nrsfm_ros.params import ReconstructorParams
 from nrsfm_ros.processing import make_stream
 
@@ -26,24 +27,8 @@ def occluded_sequence(points: int = 600, soft: float = 0.25, seed: int = 0) -> d
     with visibility ``soft``.  Returns W, V, occ (F, P) bool, S ground truth."""
     d = dense_tracks('face', frames=60, points=points, camera_motion_deg=40, sampling='grid',
                      seed=seed, amplitude=2)
-    F, P = d['V'].shape
-    Wf = d['W'].reshape(F, 2, P)
-    out = Wf.copy()
-    lo, hi = Wf[0].min(1), Wf[0].max(1)
-    r = np.sqrt(0.3 * (hi - lo).prod() / np.pi)
-    occ = np.zeros((F, P), bool)
-    anchor = np.zeros((2, P))
-    was = np.zeros(P, bool)
-    for f in range(*OCCLUDED):
-        s = (f - OCCLUDED[0] + 0.5) / (OCCLUDED[1] - OCCLUDED[0])
-        c = np.array([lo[0] + s * (hi[0] - lo[0]), lo[1] + (0.3 + 0.4 * s) * (hi[1] - lo[1])])
-        occ[f] = ((Wf[f].T - c) ** 2).sum(1) <= r * r
-        new = occ[f] & ~was
-        anchor[:, new] = Wf[f][:, new] - c[:, None]
-        out[f][:, occ[f]] = anchor[:, occ[f]] + c[:, None]
-        was = occ[f]
-    V = np.where(occ, soft, 1.0)
-    return {'W': out.reshape(2 * F, P), 'V': V, 'occ': occ, 'S': d['S']}
+    W, V, occ = occlude_tracks(d['W'], OCCLUDED, soft=soft)
+    return {'W': W, 'V': V, 'occ': occ, 'S': d['S']}
 
 
 def errors(S: np.ndarray, S_gt: np.ndarray, occ: np.ndarray) -> tuple[float, float, float]:
@@ -83,6 +68,18 @@ def test_total_intensity_criterion_picks_the_least_occluded_frames():
         select_prior_frames(V, 1, among=9)
     with pytest.raises(ValueError, match='V'):
         total_occlusion(V * 2)
+
+
+def test_occluder_covers_and_drags_the_tracks():
+    d = dense_tracks('face', frames=30, points=400, sampling='grid')
+    W, V, occ = occlude_tracks(d['W'], (10, 20), soft=0.0)
+    assert not occ[:10].any() and not occ[20:].any() and occ[10:20].any(axis=1).all()
+    assert 0.1 < occ[10:20].mean() < 0.45
+    np.testing.assert_array_equal(V, np.where(occ, 0.0, 1.0))
+    moved = np.hypot(*(W - d['W']).reshape(30, 2, -1).transpose(1, 0, 2))
+    assert (moved[~occ] == 0).all() and np.median(moved[occ]) > 1.0
+    with pytest.raises(ValueError, match='frames'):
+        occlude_tracks(d['W'], (20, 10))
 
 
 def test_prior_weights_per_pixel_frame_and_sequence():

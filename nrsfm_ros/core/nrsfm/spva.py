@@ -42,7 +42,7 @@ import numpy as np
 
 from .dspr import _align, _check_frame, _fit, object_shapes
 from .result import NRSfMResult, check_tracks
-from .va import _norm2, grid_graph, huber_shrink
+from .va import _norm2, grid_graph
 
 WEIGHTINGS = ('pixel', 'frame', 'sequence')
 RHO = 1.0          # ADMM penalty of the low-rank split (relative to the data weight)
@@ -218,27 +218,47 @@ class ShapePrior:
 
     def _admm(self, X: np.ndarray, uv: np.ndarray, v: np.ndarray, g: np.ndarray,
               R2: np.ndarray, s: float, t: np.ndarray, iterations: int) -> np.ndarray:
+        """``iterations`` linearised ADMM steps from X for the fixed camera (R2, s, t); the
+        loop works in place on a few (P, 3) / (E, 3) buffers (the per-frame latency)."""
         vs = v * s * s                                                     # data weight
-        RtW = (((uv - t) / s) @ R2) * vs[:, None]                          # (P, 3)
         pg = self.gamma * g
         cp = RHO + RHO_TV * self.L + pg                                    # (P,)
+        inv = (1.0 / cp)[:, None]
         gain = (1.0 / (cp + vs) - 1.0 / cp)[:, None]
-        base = RtW + pg[:, None] * self.T
+        base = (((uv - t) / s) @ R2) * vs[:, None] + pg[:, None] * self.T  # (P, 3)
+        RR = R2.T @ R2                                                     # (3, 3)
         keep = RHO / (RHO + self.lam)
-        D, Dt = self.D, self.Dt
+        tv_lin = RHO_TV * self.L
+        thresh = self.mu / RHO_TV
+        D, Dt, B = self.D, self.Dt, self.B
+        X = X.copy()
         Z, U = X.copy(), np.zeros_like(X)
         GX = D @ X
         Q, U2 = GX.copy(), np.zeros_like(GX)
         for _ in range(iterations):
-            rhs = base + RHO * (Z - U) + RHO_TV * (self.L * X - Dt @ (GX - Q + U2))
-            X = rhs / cp[:, None] + gain * ((rhs @ R2.T) @ R2)
-            y = (X + U).ravel()
-            proj = (self.B @ y) @ self.B
-            Z = (proj + keep * (y - proj)).reshape(X.shape)
+            GX -= Q
+            GX += U2                                   # D X - Q + U2
+            rhs = Z - U
+            rhs *= RHO
+            rhs += base
+            rhs -= RHO_TV * (Dt @ GX)
+            rhs += tv_lin * X
+            np.multiply(rhs, inv, out=X)
+            X += gain * (rhs @ RR)                     # the per-pixel 3 x 3 inverse
+            np.add(X, U, out=Z)                        # y = X + U
+            proj = (B @ Z.reshape(-1)) @ B
+            Z *= keep
+            Z += (1.0 - keep) * proj.reshape(X.shape)  # subspace kept, the rest shrunk
             GX = D @ X
-            Q = huber_shrink(GX + U2, self.mu / RHO_TV, EPS_PX) if self.mu else GX + U2
-            U += X - Z
-            U2 += GX - Q
+            np.add(GX, U2, out=Q)
+            if self.mu:                                # group Huber shrinkage per edge
+                n = np.sqrt(np.einsum('ek,ek->e', Q, Q))
+                Q *= np.where(n <= EPS_PX + thresh, EPS_PX / (EPS_PX + thresh),
+                              1.0 - thresh / np.maximum(n, 1e-300))[:, None]
+            U += X
+            U -= Z
+            U2 += GX
+            U2 -= Q
         return X
 
     def solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
