@@ -3,9 +3,10 @@ veth pair (10.231.0.1 <-> 10.231.0.2, nothing else in them but lo, so nothing ca
 machine), DDS over UDP on the veth only (no shared memory across the namespaces), discovery
 by ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET with ROS_STATIC_PEERS naming the other host, and
 NRSFM_DDS=network so the launcher and the CLI keep those settings.  Host A runs the registrar
-through the graph launcher (--nodes registrar); host B replays its input (a reference and
-moving clouds) and records what comes back.  The namespaces are deleted in the fixture's
-teardown.  Needs root and `ip netns` (skipped otherwise)."""
+through the graph launcher (--nodes registrar); host B replays its input with `nrsfm-ros
+replay` (a reference and moving clouds) and receives what comes back (test/sub_aligned.py).
+The namespaces are deleted in the fixture's teardown.  Needs root and `ip netns` (skipped
+otherwise)."""
 from __future__ import annotations
 
 import os
@@ -13,18 +14,18 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from nrsfm_ros.io import pointcloud2 as pc2
-from nrsfm_ros.io.bag import BagWriter, bag_info, deserialize, read_messages
+from nrsfm_ros.io.bag import BagWriter
 from nrsfm_ros.io.msgtypes import RosbagsFactory
 from nrsfm_ros.live import ensure_loopback_env
 
-ROOT = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
 HOSTS = {'a': '10.231.0.1', 'b': '10.231.0.2'}
 CLOUDS = 12
 POINTS = 400
@@ -128,8 +129,7 @@ def _rotation(deg_z: float, deg_x: float) -> np.ndarray:
 
 def _input_bag(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     """registration/reference X (an anisotropic blob, 2 m in front) at t=0, then CLOUDS
-    rigidly moved copies at 10 Hz from t=1.5 s (time for the recorder across the veth to
-    subscribe to the registrar's output before the first cloud)."""
+    rigidly moved copies at 10 Hz from t=1.5 s."""
     rng = np.random.default_rng(7)
     X = (rng.normal(size=(POINTS, 3)) * [0.3, 0.15, 0.06] + [0, 0, 2]).astype(np.float32)
     ids = np.arange(POINTS, dtype=np.uint32)
@@ -162,25 +162,26 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
                                  '--max-restarts', '0'),
                              env=_env(hosts, 'a', domain), stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, text=True)
-    rec = replay = None
+    sub = None
     try:
-        rec = subprocess.Popen(_in(hosts, 'b', '-m', 'nrsfm_ros.cli', 'record',
-                                   'registration/aligned', '--out', str(tmp_path / 'rec')),
+        # B: a subscriber to the registrar's output; the input is replayed once it has matched
+        # the registrar's publisher across the veth (then nothing published is lost)
+        sub = subprocess.Popen(_in(hosts, 'b', str(HERE / 'sub_aligned.py'),
+                                   str(tmp_path / 'aligned.npz'), str(CLOUDS), '90'),
                                env=_env(hosts, 'b', domain), stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
+        assert sub.stdout.readline().strip() == 'ready', sub.stderr.read()[-2000:]
         replay = subprocess.run(_in(hosts, 'b', '-m', 'nrsfm_ros.cli', 'replay',
                                     str(tmp_path / 'input'), '--wait-for-subscribers', '1',
                                     '--wait-timeout', '60'),
                                 env=_env(hosts, 'b', domain), capture_output=True, text=True,
                                 timeout=120)
         assert replay.returncode == 0, replay.stderr[-2000:]
-        time.sleep(3.0)             # the replay waited for acks; the last outputs cross
-        rec.send_signal(signal.SIGINT)
-        rec_out, rec_err = rec.communicate(timeout=30)
-        assert rec.returncode == 0, rec_err[-2000:]
+        out, err_text = sub.communicate(timeout=60)
+        assert sub.returncode == 0 and f'received {CLOUDS}' in out, (out, err_text[-2000:])
         assert graph.poll() is None, graph.stderr.read()[-2000:]     # registrar still up
     finally:
-        for p in (rec, graph):
+        for p in (sub, graph):
             if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGINT)
                 try:
@@ -189,10 +190,8 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
                     p.kill()
                     p.wait()
     assert graph.returncode == 0                             # clean stop on Ctrl-C
-    counts = bag_info(tmp_path / 'rec')['topics']
-    assert counts['registration/aligned']['count'] == CLOUDS, (rec_out, counts)
-    aligned = [pc2.read_xyz(deserialize(m.raw, m.msgtype), skip_nans=False)
-               for m in read_messages(tmp_path / 'rec', ['registration/aligned'])]
+    with np.load(tmp_path / 'aligned.npz') as z:
+        aligned = [z[f'arr_{i}'] for i in range(CLOUDS)]
     # the registrar moved every cloud back onto the reference (rows keep the input order)
     err = [float(np.sqrt(((A - X) ** 2).sum(axis=1).mean())) for A in aligned]
     before = [float(np.sqrt(((P - X) ** 2).sum(axis=1).mean())) for P in moved]
