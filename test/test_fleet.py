@@ -200,7 +200,9 @@ def _tcp_listeners_of_ray() -> list[tuple[str, str]]:
             continue
         try:
             cmd = (proc / 'cmdline').read_bytes().replace(b'\0', b' ').decode(errors='replace')
-            if 'ray' not in cmd:
+            exe = Path(cmd.split(' ')[0]).name
+            if not (exe in ('raylet', 'gcs_server') or cmd.startswith('ray::')
+                    or '/site-packages/ray/' in cmd):
                 continue
             for fd in (proc / 'fd').iterdir():
                 link = os.readlink(fd)
