@@ -228,3 +228,19 @@ def test_ros_env_script_honours_network_mode(mode, want):
          '${FASTRTPS_DEFAULT_PROFILES_FILE##*/}|${ROS_DOMAIN_ID:+set}"'],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=20).stdout.strip()
     assert out == want
+
+
+@pytest.mark.parametrize('env, text', [
+    ({'NRSFM_DDS': 'lan'}, "NRSFM_DDS='lan': expected one of loopback, network"),
+    ({'NRSFM_DDS': 'network', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'},
+     'set SUBNET (or unset it)'),
+])
+def test_bad_dds_mode_one_error_line_cli_and_launcher(env, text):
+    base = {k: v for k, v in os.environ.items() if k != 'NRSFM_DDS'}
+    for cmd in (['-m', 'nrsfm_ros.cli', 'topic', 'list', '--seconds', '0.1'],
+                ['-m', 'nrsfm_ros.launch', '--nodes', 'registrar']):
+        r = subprocess.run([sys.executable, *cmd], env={**base, **env}, capture_output=True,
+                           text=True, timeout=60, cwd=ROOT)
+        assert r.returncode == 2, (cmd, r.stderr[-2000:])
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith('error:') and text in lines[0], r.stderr
