@@ -331,7 +331,8 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
               dspr_prior_weight=params.dspr_prior_weight,
               spva_prior_frames=params.spva_prior_frames, spva_weighting=params.spva_weighting,
               spva_prior_weight=params.spva_prior_weight,
-              spva_smoothness=params.spva_smoothness, spva_refresh=params.spva_refresh)
+              spva_smoothness=params.spva_smoothness, spva_refresh=params.spva_refresh,
+              spva_iterations=params.spva_iterations)
     return StreamNRSfM(**{**kw, **overrides})
 
 

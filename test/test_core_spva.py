@@ -163,7 +163,8 @@ def test_bad_parameters_name_the_field(occluded):
                      (dict(spva_weighting='all'), 'spva_weighting'),
                      (dict(spva_prior_weight=-1.0), 'spva_prior_weight'),
                      (dict(spva_smoothness=-1.0), 'spva_smoothness'),
-                     (dict(spva_refresh=2.0), 'spva_refresh')):
+                     (dict(spva_refresh=2.0), 'spva_refresh'),
+                     (dict(spva_iterations=0), 'spva_iterations')):
         with pytest.raises(ValueError, match=name):
             StreamNRSfM(mode='spva', batch_frames=60, **kw)
     StreamNRSfM(mode='batch', batch_frames=5)          # spva_prior_frames only binds in spva
@@ -183,11 +184,12 @@ def test_stream_spva_publishes_every_frame_and_streams_after_the_prior():
     F, P = V.shape
     params = ReconstructorParams(mode='spva', method='cdf', batch_frames=30,
                                  spva_prior_frames=8, spva_weighting='pixel',
-                                 spva_smoothness=0.1, spva_refresh=0.0)
+                                 spva_smoothness=0.1, spva_refresh=0.0, spva_iterations=16)
     runs = {}
     for gamma in (10.0, 0.0):
         s = make_stream(params, spva_prior_weight=gamma)
-        assert (s.mode, s.spva['prior_frames'], s.spva['smoothness']) == ('spva', 8, 0.1)
+        assert (s.mode, s.spva['prior_frames'], s.spva['smoothness'],
+                s.spva['iterations']) == ('spva', 8, 0.1, 16)
         got: dict[int, np.ndarray] = {}
         for f in range(F):
             ids = np.arange(P) if f != 45 else np.append(np.arange(P), 10_000)

@@ -230,6 +230,7 @@ class ShapePrior:
         keep = RHO / (RHO + self.lam)
         tv_lin = RHO_TV * self.L
         thresh = self.mu / RHO_TV
+        floor = EPS_PX / (EPS_PX + thresh)
         D, Dt, B = self.D, self.Dt, self.B
         X = X.copy()
         Z, U = X.copy(), np.zeros_like(X)
@@ -241,20 +242,30 @@ class ShapePrior:
             rhs = Z - U
             rhs *= RHO
             rhs += base
-            rhs -= RHO_TV * (Dt @ GX)
+            dv = Dt @ GX
+            dv *= RHO_TV
+            rhs -= dv
             rhs += tv_lin * X
             np.multiply(rhs, inv, out=X)
-            X += gain * (rhs @ RR)                     # the per-pixel 3 x 3 inverse
+            rr = rhs @ RR
+            rr *= gain
+            X += rr                                    # the per-pixel 3 x 3 inverse
             np.add(X, U, out=Z)                        # y = X + U
             proj = (B @ Z.reshape(-1)) @ B
             Z *= keep
             Z += (1.0 - keep) * proj.reshape(X.shape)  # subspace kept, the rest shrunk
             GX = D @ X
             np.add(GX, U2, out=Q)
-            if self.mu:                                # group Huber shrinkage per edge
-                n = np.sqrt(np.einsum('ek,ek->e', Q, Q))
-                Q *= np.where(n <= EPS_PX + thresh, EPS_PX / (EPS_PX + thresh),
-                              1.0 - thresh / np.maximum(n, 1e-300))[:, None]
+            if self.mu:     # group Huber shrinkage per edge: max(1 - t / |q|, eps / (eps + t))
+                n = Q[:, 0] * Q[:, 0]
+                n += Q[:, 1] * Q[:, 1]
+                n += Q[:, 2] * Q[:, 2]
+                np.sqrt(n, out=n)
+                np.maximum(n, 1e-300, out=n)
+                np.divide(-thresh, n, out=n)
+                n += 1.0
+                np.maximum(n, floor, out=n)
+                Q *= n[:, None]
             U += X
             U -= Z
             U2 += GX

@@ -108,7 +108,7 @@ class StreamNRSfM:
                  dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01,
                  spva_prior_frames: int = 10, spva_weighting: str = 'pixel',
                  spva_prior_weight: float = 10.0, spva_smoothness: float = 0.05,
-                 spva_refresh: float = 0.0) -> None:
+                 spva_refresh: float = 0.0, spva_iterations: int = 20) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if projection not in PROJECTIONS:
@@ -143,9 +143,13 @@ class StreamNRSfM:
                 raise ValueError(f'{name}: expected a finite value >= 0, got {v}')
         if not (np.isfinite(spva_refresh) and 0 <= spva_refresh <= 1):
             raise ValueError(f'spva_refresh: expected 0..1, got {spva_refresh}')
+        if isinstance(spva_iterations, (bool, np.bool_)) or int(spva_iterations) != \
+                spva_iterations or spva_iterations < 1:
+            raise ValueError(f'spva_iterations: expected an integer >= 1, got {spva_iterations}')
         self.spva = dict(prior_frames=int(spva_prior_frames), weighting=spva_weighting,
                          prior_weight=float(spva_prior_weight),
-                         smoothness=float(spva_smoothness), refresh=float(spva_refresh))
+                         smoothness=float(spva_smoothness), refresh=float(spva_refresh),
+                         iterations=int(spva_iterations))
         self._solver = solver or _solve_default
         size = batch_frames if mode in ('batch', 'dspr', 'spva') else window
         self._frames: deque[_Frame] = deque(maxlen=size)
