@@ -158,10 +158,15 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
     assert [ln.split(':')[1].strip().split('@')[0] for ln in links.splitlines()] == \
         ['lo', f'nv{os.getpid() % 100000}a']            # nothing but lo and the veth
     X, moved = _input_bag(tmp_path / 'input')
-    graph = subprocess.Popen(_in(hosts, 'a', '-m', 'nrsfm_ros.launch', '--nodes', 'registrar',
-                                 '--max-restarts', '0'),
-                             env=_env(hosts, 'a', domain), stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)
+    log = tmp_path / 'graph.log'            # the launcher's and the registrar's stderr
+    with open(log, 'w') as f:
+        graph = subprocess.Popen(_in(hosts, 'a', '-m', 'nrsfm_ros.launch', '--nodes',
+                                     'registrar', '--max-restarts', '0'),
+                                 env=_env(hosts, 'a', domain), stdout=subprocess.DEVNULL,
+                                 stderr=f)
+
+    def graph_log() -> str:
+        return log.read_text()[-2000:]
     sub = None
     try:
         # B: a subscriber to the registrar's output; the input is replayed once it has matched
@@ -170,16 +175,18 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
                                    str(tmp_path / 'aligned.npz'), str(CLOUDS), '90'),
                                env=_env(hosts, 'b', domain), stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
-        assert sub.stdout.readline().strip() == 'ready', sub.stderr.read()[-2000:]
+        assert sub.stdout.readline().strip() == 'ready', (sub.stderr.read()[-2000:],
+                                                          graph_log())
         replay = subprocess.run(_in(hosts, 'b', '-m', 'nrsfm_ros.cli', 'replay',
                                     str(tmp_path / 'input'), '--wait-for-subscribers', '1',
                                     '--wait-timeout', '60'),
                                 env=_env(hosts, 'b', domain), capture_output=True, text=True,
                                 timeout=120)
-        assert replay.returncode == 0, replay.stderr[-2000:]
+        assert replay.returncode == 0, (replay.stderr[-2000:], graph_log())
         out, err_text = sub.communicate(timeout=60)
-        assert sub.returncode == 0 and f'received {CLOUDS}' in out, (out, err_text[-2000:])
-        assert graph.poll() is None, graph.stderr.read()[-2000:]     # registrar still up
+        assert sub.returncode == 0 and f'received {CLOUDS}' in out, (
+            out, err_text[-2000:], replay.stdout[-2000:], graph_log())
+        assert graph.poll() is None, graph_log()                     # registrar still up
     finally:
         for p in (sub, graph):
             if p is not None and p.poll() is None:
@@ -189,7 +196,7 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait()
-    assert graph.returncode == 0                             # clean stop on Ctrl-C
+    assert graph.returncode == 0, graph_log()                # clean stop on Ctrl-C
     with np.load(tmp_path / 'aligned.npz') as z:
         aligned = [z[f'arr_{i}'] for i in range(CLOUDS)]
     # the registrar moved every cloud back onto the reference (rows keep the input order)
