@@ -131,7 +131,7 @@ def _parser() -> argparse.ArgumentParser:
     pr.add_argument('--ray', nargs='?', const='', default=None, metavar='ADDRESS',
                     help='run the bags as Ray tasks (pip install nrsfm_ros[ray]): without '
                     'ADDRESS on a private local Ray instance bound to 127.0.0.1, with one '
-                    '(HOST:PORT of the head, or auto) on that cluster; --out is then a folder '
+                    '(HOST:PORT of the head) on that cluster; --out is then a folder '
                     'of output bags even for one bag.  Put it after the bags or write '
                     '--ray=ADDRESS')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')

@@ -11,7 +11,7 @@ the same bags (22 s against 3 s), most of it in the reconstructor's solves.
 
 ``process_bags(..., ray='')`` runs the same jobs as Ray tasks instead (one task per bag, one CPU
 each): ``''`` starts a private Ray instance on this machine bound to 127.0.0.1 only (no
-dashboard, no usage statistics, a small object store), an address (``HOST:PORT``, ``auto``)
+dashboard, no usage statistics, a small object store), an address (``HOST:PORT`` of the head)
 connects to a running cluster whose nodes have this package installed and see the bags and the
 output folder at the same paths (a shared filesystem).  The report is the same;
 a task whose worker dies fails its bag alone (no retries: a bag that kills its worker would kill
@@ -329,16 +329,13 @@ LOOPBACK_HOSTS = ('', '127.0.0.1', 'localhost', '::1')
 
 
 def _split_address(address: str) -> tuple[str, int | None]:
-    """(host, port) of ``HOST:PORT``; ('', None) for a local instance; (address, None) for
-    one Ray resolves itself (``auto``, ``ray://...``)."""
+    """(host, port) of ``HOST:PORT``; ('', None) for a local instance."""
     if not address:
         return '', None
-    if address == 'auto' or '://' in address:
-        return address, None
     host, sep, port = address.rpartition(':')
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+    if not sep or not host or '/' in host or not port.isdigit() or not 0 < int(port) < 65536:
         raise ValueError(f'--ray {address}: expected HOST:PORT of the Ray head (e.g. '
-                         '10.0.0.5:6379) or auto')
+                         '10.0.0.5:6379)')
     return host.strip('[]'), int(port)
 
 
@@ -370,7 +367,7 @@ def ray_session(address: str = '', num_cpus: int | None = None) -> Iterator[dict
     ``address=''``: start a private Ray instance on this machine with ``num_cpus`` CPUs
     (default: all cores), bound to 127.0.0.1, without dashboard or usage statistics and with
     an object store of :data:`RAY_OBJECT_STORE_BYTES`; it stops on exit.  Otherwise connect to
-    the cluster at ``address`` (``HOST:PORT`` of its head, or ``auto``) and disconnect on
+    the cluster at ``address`` (``HOST:PORT`` of its head) and disconnect on
     exit.  When this process is already connected to Ray, that connection is used and left
     open.  Raises :class:`RayUnavailableError` when Ray is missing or cannot start/connect."""
     if num_cpus is not None and num_cpus < 1:
