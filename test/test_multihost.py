@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,11 @@ def hosts(tmp_path):
             profile = tmp_path / f'fastdds_{h}.xml'
             profile.write_text(PROFILE.format(address=address))
             out[h] = (ns[h], address, profile)
+        end = time.monotonic() + 10      # carrier on both ends (Fast DDS filters out a
+        while not all('LOWER_UP' in _ip('-n', ns[h], '-o', 'link', 'show', dev[h]).stdout
+                      for h in HOSTS):   # whitelisted interface that is not running yet)
+            assert time.monotonic() < end, 'the veth pair did not come up'
+            time.sleep(0.05)
         yield out
     finally:
         for name in made:
@@ -175,8 +181,13 @@ def test_graph_across_two_namespaces_over_the_veth(hosts, tmp_path):
                                    str(tmp_path / 'aligned.npz'), str(CLOUDS), '90'),
                                env=_env(hosts, 'b', domain), stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
-        assert sub.stdout.readline().strip() == 'ready', (sub.stderr.read()[-2000:],
-                                                          graph_log())
+        said = []                       # Fast DDS may log to stdout before 'ready'
+        while True:
+            line = sub.stdout.readline() if sub.stdout else ''
+            said.append(line.strip())
+            if not line or line.strip() == 'ready':       # '': it exited
+                break
+        assert said[-1] == 'ready', (said, sub.stderr.read()[-2000:], graph_log())
         replay = subprocess.run(_in(hosts, 'b', '-m', 'nrsfm_ros.cli', 'replay',
                                     str(tmp_path / 'input'), '--wait-for-subscribers', '1',
                                     '--wait-timeout', '60'),
