@@ -15,12 +15,16 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')
          + glob('config/*.json')),
     ],
+    # the shipped HDM-Net model (mode hdmnet, reconstruct-image) and its record
+    package_data={package_name: ['models/hdmnet.onnx', 'models/hdmnet.json']},
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
-                      'PyYAML'],
+                      'PyYAML', 'onnxruntime'],   # onnxruntime: HDM-Net inference
     extras_require={'plot': ['matplotlib'],      # nrsfm-ros evaluate --plot
                     'view': ['foxglove-sdk>=0.30.3'],    # nrsfm-ros view
-                    'ray': ['ray==2.58.0']},              # nrsfm-ros process --ray
-    zip_safe=True,
+                    'ray': ['ray==2.58.0'],               # nrsfm-ros process --ray
+                    # nrsfm-ros train-hdmnet (the CPU wheel is enough; the ONNX export needs onnx)
+                    'learning': ['torch', 'onnx']},
+    zip_safe=False,   # the HDM-Net model is read from its file
     maintainer='nrsfm_ros maintainers',
     maintainer_email='maintainers@nrsfm-ros.invalid',
     description='Dense monocular NRSfM, scene flow and point set registration for ROS 2',

@@ -29,6 +29,9 @@ EXAMPLES = {
     'register': 'nrsfm-ros register source.ply target.ply --method cpd-rigid --w 0.3 --out r.npz',
     'scene-flow': 'nrsfm-ros scene-flow rgbd/ --out flow.npz   (rgbd/color/*.png, '
                   'rgbd/depth/*.png 16-bit mm, rgbd/intrinsics.txt)',
+    'train-hdmnet': 'nrsfm-ros train-hdmnet --out out/hdmnet --seed 0 --states 4000 --epochs 20 '
+                    '  (needs pip install .[learning])',
+    'reconstruct-image': 'nrsfm-ros reconstruct-image frame.png --out shape.npz --fx 768',
     'view': 'nrsfm-ros view bags/face_out --rate 0.5 --loop   (then open ws://127.0.0.1:8765 in '
             'Foxglove with config/foxglove_layout.json); nrsfm-ros view   (the live topics)',
 }
@@ -227,6 +230,12 @@ def _parser() -> argparse.ArgumentParser:
                     'differences over frames; default 100 with orbit cameras, else 0)')
     rc.add_argument('--out', required=True)
 
+    from .hdmnet_tools import add_image_args, add_train_args
+    add_train_args(add('train-hdmnet', 'HDM-Net: render the training data, train (PyTorch), '
+                       'export hdmnet.onnx + hdmnet.json (seed, data, command, commit, metrics)'))
+    add_image_args(add('reconstruct-image', 'HDM-Net: one image -> a 73 x 73 grid of 3-D points '
+                       '(camera frame, m) and its depth image (.npz: points, valid, depth, K)'))
+
     rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
     rg.add_argument('source')
     rg.add_argument('target')
@@ -282,6 +291,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    args.argv = list(argv) if argv is not None else sys.argv[1:]
     try:
         return int(VERBS[args.verb](args) or 0)
     except KeyboardInterrupt:
@@ -983,6 +993,16 @@ def read_points_file(path: str) -> np.ndarray:
     return X[:, :3]
 
 
+def cmd_train_hdmnet(args: argparse.Namespace) -> int:
+    from .hdmnet_tools import train_command
+    return train_command(args, args.argv)
+
+
+def cmd_reconstruct_image(args: argparse.Namespace) -> int:
+    from .hdmnet_tools import reconstruct_image_command
+    return reconstruct_image_command(args)
+
+
 def cmd_register(args: argparse.Namespace) -> int:
     from .core.registration import METHODS, register
     if args.method not in METHODS:
@@ -1092,6 +1112,8 @@ VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     'evaluate': cmd_evaluate,
     'track': cmd_track,
     'reconstruct': cmd_reconstruct,
+    'train-hdmnet': cmd_train_hdmnet,
+    'reconstruct-image': cmd_reconstruct_image,
     'register': cmd_register,
     'scene-flow': cmd_scene_flow,
     'view': cmd_view,

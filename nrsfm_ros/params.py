@@ -180,7 +180,7 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr', 'spva'),
+    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr', 'spva', 'hdmnet'),
                      'batch: batch_frames frames at a time with method (the most accurate on '
                      'the pipeline benchmark); window: sliding window re-solved per frame '
                      '(lowest latency); online: the first window, then each frame fitted alone '
@@ -190,7 +190,10 @@ class ReconstructorParams(Params):
                      'the new shape joining the prior); spva: the first batch as batch, a '
                      'shape prior from its least-occluded frames, then each frame by the '
                      'variational energy (visible tracks, Huber-TV on the track grid, the '
-                     "batch's shape subspace) plus the prior weighted by the occlusion")
+                     "batch's shape subspace) plus the prior weighted by the occlusion; "
+                     'hdmnet: no tracks, each camera image '
+                     'alone through the learned HDM-Net (a 73 x 73 grid of a thin sheet-like '
+                     'surface in metres, every frame; track_id = grid node)')
     method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
                                        'hdsm', 'va', 'planar'),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
@@ -237,6 +240,9 @@ class ReconstructorParams(Params):
     spva_iterations: int = rule(20, _at_least(1),
                                 'spva: ADMM iterations per frame (the per-frame latency: about '
                                 'linear in them; 12 loses ~5% e3D)')
+    hdmnet_model: str = rule('', None, 'hdmnet: ONNX model file (empty: the shipped '
+                             'nrsfm_ros/models/hdmnet.onnx)')
+    hdmnet_threads: int = rule(2, _at_least(1), 'hdmnet: ONNX Runtime threads')
     mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
                              'scale of the metric output, which one camera cannot observe')
     publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from .core.nrsfm.stream import StreamNRSfM, StreamShape
 from .core.nrsfm.spva import ShapePrior
 from .core.depth import depth_image
+from .core import hdmnet as hdmnet_core
 from .core.registration import register
 from .core.registration.base import make_result, resolve_threshold, robust_residual
 from .core.sceneflow import scene_flow
@@ -34,6 +35,7 @@ Output = tuple[str, str, Any]
 Handler = Callable[[Any], list[Output]]     # one input kind's message -> outputs
 
 MIN_IMAGE_SIDE = 16     # px: smaller camera images are rejected by the tracker
+HDMNET_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', '8UC3')
 
 PC2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
@@ -178,6 +180,11 @@ class Processor:
         """The input kinds this processor takes and the method that handles each."""
         return {}
 
+    def accepts(self, kind: str) -> bool:
+        """Whether input ``kind`` is used in the current parameters (others are ignored
+        uncounted: e.g. the reconstructor's camera images outside mode hdmnet)."""
+        return True
+
     def handle(self, kind: str, msg: Any) -> list[Output]:
         """Dispatch ``msg`` of input ``kind``; counts, times and records errors.
 
@@ -188,6 +195,8 @@ class Processor:
         if handler is None:
             raise ValueError(f'{self.name}: no input {kind!r} (inputs: '
                              f'{sorted(self.handlers())})')
+        if not self.accepts(kind):
+            return []
         self.stats.received += 1
         self.stats.stamps.append(time.monotonic())
         t0 = time.perf_counter()
@@ -345,7 +354,8 @@ class ReconstructorProcessor(Processor):
     params_cls = ReconstructorParams
 
     def handlers(self) -> dict[str, Handler]:
-        return {'camera_info': self.on_camera_info, 'tracks': self.on_tracks}
+        return {'camera_info': self.on_camera_info, 'tracks': self.on_tracks,
+                'image': self.on_image, 'image_compressed': self.on_image_compressed}
 
     def __init__(self, factory: MsgFactory, params: ReconstructorParams | None = None) -> None:
         super().__init__(factory, params)
@@ -355,7 +365,9 @@ class ReconstructorProcessor(Processor):
 
     def _reset(self) -> None:
         p = self.params
-        self.stream = make_stream(p)
+        if p.mode == 'hdmnet':
+            self._load_hdmnet()
+        self.stream = make_stream(p if p.mode != 'hdmnet' else replace(p, mode='batch'))
         self._apply_intrinsics()
         self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
         self._rgb: dict[int, float] = {}
@@ -382,6 +394,63 @@ class ReconstructorProcessor(Processor):
         if self.params.mode == 'spva':      # the frames the prior was built from, once it is
             out['spva_prior_frames'] = ','.join(str(int(f)) for f in s.prior.frames) \
                 if isinstance(s.prior, ShapePrior) else ''
+        return out
+
+    def accepts(self, kind: str) -> bool:
+        if kind in ('image', 'image_compressed'):
+            return self.params.mode == 'hdmnet'
+        return kind != 'tracks' or self.params.mode != 'hdmnet'
+
+    def _load_hdmnet(self) -> None:
+        """The HDM-Net runtime for ``hdmnet_model`` (kept while the file and threads stay)."""
+        from .io.hdmnet_model import HDMNetModel
+        p = self.params
+        key = (p.hdmnet_model, p.hdmnet_threads)
+        if getattr(self, '_hdm_key', None) != key:
+            self.hdmnet = HDMNetModel(p.hdmnet_model or None, p.hdmnet_threads)
+            self._hdm_key = key
+
+    def on_image(self, msg: Any) -> list[Output]:
+        return self._hdmnet(img_io.image_to_array(msg), str(msg.encoding), msg.header)
+
+    def on_image_compressed(self, msg: Any) -> list[Output]:
+        arr, enc = img_io.compressed_to_array(msg)
+        return self._hdmnet(arr, enc, msg.header)
+
+    def _hdmnet(self, arr: np.ndarray, encoding: str, header: Any) -> list[Output]:
+        """mode hdmnet: one image -> one nrsfm/points (the valid grid nodes, track_id = row *
+        73 + column, rgb from the image) and one nrsfm/depth."""
+        if encoding not in HDMNET_ENCODINGS:
+            raise MessageError('encoding', encoding, 'hdmnet needs a colour image (one of '
+                               f'{", ".join(HDMNET_ENCODINGS)})')
+        rgb = np.ascontiguousarray(img_io.to_rgb8(arr, encoding), np.uint8)
+        h, w = rgb.shape[:2]
+        if min(h, w) < hdmnet_core.MIN_SIDE:
+            raise MessageError('height/width', (h, w),
+                               f'hdmnet needs at least {hdmnet_core.MIN_SIDE} px a side')
+        K = self.K if self.K is not None and self.image_size in (None, (h, w)) else None
+        if K is None and self.params.focal_length_px > 0:
+            f = self.params.focal_length_px
+            K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        res = self.hdmnet.predict(rgb, K)
+        K = self.hdmnet.last_K
+        X, ids = res.cloud()
+        if ids.size < 4:
+            raise MessageError('data', f'{ids.size} valid nodes', 'hdmnet predicted fewer than '
+                               '4 points in front of the camera')
+        uv = hdmnet_core.grid_uv(X, K)
+        x = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
+        y = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
+        stamp, frame = stamp_ns(header), str(header.frame_id)
+        X = X.astype(np.float32)
+        cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
+                            'rgb': pc2.pack_rgb(rgb[y, x]), 'track_id': ids}, self.factory,
+                           stamp, frame)
+        out: list[Output] = [(TOPICS['points'], PC2, cloud)]
+        if self.params.publish_depth:
+            depth = depth_image(uv, X[:, 2], (h, w))
+            out.append((TOPICS['nrsfm_depth'], IMAGE,
+                        img_io.array_to_image(depth, '32FC1', self.factory, stamp, frame)))
         return out
 
     def on_camera_info(self, msg: Any) -> list[Output]:

@@ -1,4 +1,5 @@
-"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points + nrsfm/depth."""
+"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points + nrsfm/depth; mode
+hdmnet: camera/image_raw (+ /compressed) -> the same outputs, frame by frame."""
 from __future__ import annotations
 
 import sys
@@ -16,6 +17,9 @@ class ReconstructorNode(ProcessorNode):
         qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('tracks', 'sensor_msgs/msg/PointCloud2', qos)
         self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
+        # mode hdmnet reconstructs each camera image alone (other modes ignore them uncounted)
+        self.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
+        self.subscribe('image_compressed', 'sensor_msgs/msg/CompressedImage', SENSOR)
         self._last_tracks = time.monotonic()
 
     def _on_message(self, kind: str, msg: object) -> None:

@@ -1,0 +1,1 @@
+"""Optional learned components (the extra ``learning``: PyTorch)."""
