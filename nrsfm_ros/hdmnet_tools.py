@@ -28,6 +28,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument('--threads', type=int, default=None, help='PyTorch threads (default 2)')
     p.add_argument('--max-steps', type=int, default=None,
                    help='stop after this many optimiser steps (default 0: all epochs)')
+    p.add_argument('--init', default=None,
+                   help='warm start from the hdmnet.pt of an earlier run (its hdmnet.json is '
+                   'kept in the new record)')
 
 
 def train_command(args: argparse.Namespace, argv: list[str]) -> int:
@@ -37,7 +40,7 @@ def train_command(args: argparse.Namespace, argv: list[str]) -> int:
         raise ToolError(f'train-hdmnet needs PyTorch (pip install .[learning]): {err}') from err
     cfg = T.main_config(seed=args.seed, states=args.states, test_states=args.test_states,
                         epochs=args.epochs, batch=args.batch, lr=args.lr, width=args.width,
-                        threads=args.threads, max_steps=args.max_steps)
+                        threads=args.threads, max_steps=args.max_steps, init=args.init)
     meta = T.train(cfg, args.out, command=['nrsfm-ros', *argv],
                    log=lambda s: print(s, flush=True))
     m = meta['metrics']

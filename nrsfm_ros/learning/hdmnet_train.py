@@ -2,14 +2,15 @@
 
 The network (METHODS.md section 8): a residual CNN encoder (stride-2 stages) to a 2 x 2
 bottleneck, a fully connected code of ``n_basis`` coefficients, and a linear decoder to the
-GRID x GRID x 3 output that starts as the training grids' mean plus their principal modes.  Training sees the data stored at half the input size (``HDMDataConfig
-.stored``, the INPUT_SIZE render area-averaged); the exported model starts with the same 2 x 2
-average pooling, so it takes the INPUT_SIZE image of ``core.hdmnet.preprocess``.
+GRID x GRID x 3 output that starts as the training grids' mean plus their principal modes.
+Training sees the data stored at half the input size (``HDMDataConfig.stored``, the
+INPUT_SIZE render area-averaged) and pools it by ``pool``; the exported model starts with the
+same average pooling, so it takes the INPUT_SIZE image of ``core.hdmnet.preprocess``.
 
 Losses: 3-D (mean squared distance to the ground-truth nodes, plus ``w_shape`` x the same for
-the grids centred on their centroids: the shape, which metric B scores), isometry (the grid against its
-Gaussian-smoothed self: wrinkles cost) and contour (a soft silhouette of Gaussian splats of the
-projected nodes against the rendered mask).
+the grids centred on their centroids: the shape, which metric B scores), isometry (the grid
+against its Gaussian-smoothed self: wrinkles cost) and contour (a soft silhouette of Gaussian
+splats of the projected nodes against the rendered mask).
 """
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ class TrainConfig:
     w_contour: float = 1e-3
     threads: int = 2
     max_steps: int = 0          # stop after this many steps (0: all epochs; smoke tests)
+    init: str = ''              # warm start: hdmnet.pt of an earlier run (its record is kept)
 
     def validate(self) -> None:
         for name in ('states', 'test_states', 'epochs', 'batch', 'width', 'threads', 'pool',
@@ -258,6 +260,15 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
     g_all = torch.from_numpy(tr['grids'])
     m_all = torch.from_numpy(_masks_small(tr['masks']))
     model(x_all[:2])                                 # materialise the lazy layer
+    init_record: dict[str, Any] | None = None
+    if cfg.init:
+        init = Path(cfg.init)
+        if not init.is_file():
+            raise FileNotFoundError(f'init={cfg.init}: no such checkpoint')
+        model.load_state_dict(torch.load(init)['state_dict'])
+        rec = init.with_suffix('.json')
+        init_record = {'path': str(init), 'sha256': hashlib.sha256(init.read_bytes()).hexdigest(),
+                       'record': json.loads(rec.read_text()) if rec.is_file() else None}
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     n = len(x_all)
     steps_per_epoch = max(1, n // cfg.batch)
@@ -318,6 +329,7 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
             'torch': torch.__version__,
             'parameters': int(sum(p.numel() for p in model.parameters())),
             'bytes': len(blob), 'sha256': hashlib.sha256(blob).hexdigest(),
+            'init': init_record,
             'render_s': round(render_s, 1), 'train_s': round(train_s, 1), 'steps': step,
             'history': history, 'metrics': metrics}
     (out / 'hdmnet.json').write_text(json.dumps(meta, indent=1) + '\n')
