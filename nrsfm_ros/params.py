@@ -298,7 +298,19 @@ class RegistrarParams(Params):
     identity_guard: bool = rule(True, None,
                                 'publish the unmoved cloud (identity) when the registration '
                                 'explains the reference worse than it (robust residual: mean '
-                                'of min(d, inlier_threshold)^2)')
+                                'of min(d, inlier_threshold)^2; match track_id: the same on '
+                                'the ray residual of the matches)')
+    match: str = rule('track_id', _one_of('track_id', 'nearest'),
+                      'track_id: a cloud sharing >= 6 track ids with the reference, all in '
+                      'front of its camera (a camera optical frame, as nrsfm/points), is posed '
+                      'from those matches trusting its viewing rays over its depth (robust '
+                      'Gauss-Newton from the previous pose; the previous pose or the identity '
+                      'wins where it explains the matches better); other clouds, and nearest, '
+                      'use method')
+    depth_weight: float = rule(0.1, _REG['depth_weight'],
+                               'match track_id: weight of the error along each viewing ray '
+                               'against the error across it (0: rays only, the cloud\'s depth '
+                               'unused; 1: plain point-to-point)')
     prior_matches: int = rule(0, _non_negative,
                               'ecpd-*, ga, bhrga: prior correspondences taken from track_id '
                               'values the cloud shares with the reference (evenly spread; 0: '
@@ -306,7 +318,8 @@ class RegistrarParams(Params):
     try_reflection: bool = rule(True, None,
                                 'also try the depth-mirrored source (orthographic NRSfM has a '
                                 'depth reflection ambiguity) on the first cloud and every '
-                                '10th, and keep the better fit')
+                                '10th, and keep the better fit (match track_id: the cost ratios '
+                                'of the checks add up and their sum decides)')
     queue_size: int = _queue_size()
     queue_policy: str = _queue_policy()
 

@@ -20,7 +20,10 @@ from .core.nrsfm.spva import ShapePrior
 from .core.depth import depth_image
 from .core import hdmnet as hdmnet_core
 from .core.registration import register
-from .core.registration.base import make_result, resolve_threshold, robust_residual
+from .core.registration.base import (RegistrationResult, make_result, resolve_threshold,
+                                     rigid_result, robust_residual)
+from .core.registration.rays import (MIN_MATCHES, invert, mirror_along_rays, ray_cost,
+                                     ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
 from .core.tracking.reference_flow import reference_pixels
@@ -568,8 +571,10 @@ class RegistrarProcessor(Processor):
         self.last_reflected = False
         self._checks = 0
         self._last_T: np.ndarray | None = None
+        self._mirror_evidence = 0.0      # sum of log(cost unmirrored / mirrored) over checks
         self.reference_ids: np.ndarray | None = None
         self.identity_kept = 0           # clouds where the identity beat the registration
+        self.matched_by_id = 0           # clouds posed from their track ids (match track_id)
 
     def on_reference(self, msg: Any) -> list[Output]:
         xyz = pc2.read_xyz(msg, skip_nans=False)
@@ -583,7 +588,8 @@ class RegistrarProcessor(Processor):
         # everything read and checked: now the state changes, all at once
         self.reference, self.reference_ids, self._tree = ref, ids, tree
         self.reference_frame = str(msg.header.frame_id)
-        self._checks, self._last_T = 0, None
+        self._checks, self._last_T, self._mirror_evidence = 0, None, 0.0
+        self.last_reflected = False
         return []
 
     def on_points(self, msg: Any) -> list[Output]:
@@ -597,6 +603,80 @@ class RegistrarProcessor(Processor):
         ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0] \
             if 'track_id' in pc2.field_names(msg) else np.arange(src.shape[0], dtype=np.uint32)
         src, ids = src[ok], ids[ok]
+        has_ids = 'track_id' in pc2.field_names(msg)
+        res = self._pose_by_track_id(src, ids) \
+            if self.params.match == 'track_id' and has_ids else None
+        if res is None:
+            res = self._pose_by_method(src, ids)
+        self._checks += 1
+        self._last_T = res.T_target_source
+        stamp = stamp_ns(msg.header)
+        frame = self.reference_frame or str(msg.header.frame_id)
+        A = res.aligned.astype(np.float32)
+        D = (res.aligned - src).astype(np.float32)
+        aligned = pc2.to_msg({'x': A[:, 0], 'y': A[:, 1], 'z': A[:, 2], 'track_id': ids},
+                             self.factory, stamp, frame)
+        disp = pc2.to_msg({'x': src[:, 0].astype(np.float32), 'y': src[:, 1].astype(np.float32),
+                           'z': src[:, 2].astype(np.float32), 'dx': D[:, 0], 'dy': D[:, 1],
+                           'dz': D[:, 2]}, self.factory, stamp, str(msg.header.frame_id))
+        return [(TOPICS['aligned'], PC2, aligned),
+                (TOPICS['transform'], 'geometry_msgs/msg/TransformStamped',
+                 transform_msg(self.factory, res.T_target_source, stamp, frame,
+                               str(msg.header.frame_id))),
+                (TOPICS['displacement'], PC2, disp)]
+
+    def _pose_by_track_id(self, src: np.ndarray, ids: np.ndarray
+                          ) -> RegistrationResult | None:
+        """The pose from the track ids the cloud shares with the reference, trusting its
+        viewing rays over its depth (``core.registration.rays``), warm-started from the previous
+        cloud's pose; None where the cloud cannot be posed that way (fewer than MIN_MATCHES
+        shared ids, or not a camera-frame cloud: a point at z <= 0).  Candidates, scored by one
+        robust ray cost: the solve (on reflection checks also the solve of the cloud mirrored
+        along its rays), the previous pose unchanged, and the identity (``identity_guard``)."""
+        p = self.params
+        if self.reference_ids is None or not (src[:, 2] > 0).all():
+            return None
+        _, si, ri = np.intersect1d(ids, self.reference_ids, return_indices=True)
+        if si.size < MIN_MATCHES:
+            return None
+        t0 = time.perf_counter()
+        thr = resolve_threshold(self.reference, p.inlier_threshold)
+        target = self.reference[ri]
+        kw = dict(depth_weight=p.depth_weight, max_iterations=p.max_iterations,
+                  tolerance=p.tolerance, max_points=p.max_points, tree=self._tree)
+        sources = {False: src, True: mirror_along_rays(src)}
+        # the mirror changes only the depth: nothing to choose with depth_weight 0
+        check = p.try_reflection and p.depth_weight > 0 and self._checks % 10 == 0
+        solves = {refl: ray_pose(sources[refl][si], target, thr, init=self._last_T, **kw)
+                  for refl in ((False, True) if check else (self.last_reflected,))}
+        if check:
+            # one frame's costs of a deforming surface may favour either reflection: the
+            # evidence adds up over the checks (each capped at a factor 4), the sum decides
+            ratio = solves[False][1] / max(solves[True][1], 1e-300)
+            self._mirror_evidence += float(np.clip(np.log(max(ratio, 1e-300)), -np.log(4),
+                                                   np.log(4)))
+            self.last_reflected = self._mirror_evidence > 0
+        res, cost = solves[self.last_reflected]
+        moving = sources[self.last_reflected]
+        d = moving[si] / np.linalg.norm(moving[si], axis=1, keepdims=True)
+        others = [('previous', self._last_T)] if self._last_T is not None else []
+        if p.identity_guard:
+            others.append(('identity', np.eye(4)))
+        T, method = res.T_target_source, 'rays'
+        for name, T_other in others:
+            c = ray_cost(ray_residuals(invert(T_other), target, moving[si], d, p.depth_weight),
+                         thr)
+            if c < cost:
+                T, method, cost = T_other, name, c
+        self.identity_kept += method == 'identity'
+        self.matched_by_id += 1
+        # the whole cloud moved (the solve saw only the matched points)
+        return rigid_result(moving, T, self._tree, thr, method, res.iterations,
+                            res.converged or method != 'rays', t0)
+
+    def _pose_by_method(self, src: np.ndarray, ids: np.ndarray) -> RegistrationResult:
+        """``method`` on nearest neighbours, with the reflection check and the identity guard
+        on the robust residual (``base.robust_residual``)."""
         p = self.params
         kw = registration_kwargs(p, self._tree)
         if p.prior_matches and p.method in ('ecpd-rigid', 'ecpd-nonrigid', 'ga', 'bhrga'):
@@ -628,23 +708,7 @@ class RegistrarProcessor(Processor):
             res = make_result(src, src.copy(), np.eye(4), self._tree, thr, 'identity', 0, True,
                               t0)
             self.identity_kept += 1
-        self._checks += 1
-        self._last_T = res.T_target_source
-        stamp = stamp_ns(msg.header)
-        frame = self.reference_frame or str(msg.header.frame_id)
-        A = res.aligned.astype(np.float32)
-        D = (res.aligned - src).astype(np.float32)
-        aligned = pc2.to_msg({'x': A[:, 0], 'y': A[:, 1], 'z': A[:, 2], 'track_id': ids},
-                             self.factory, stamp, frame)
-        disp = pc2.to_msg({'x': src[:, 0].astype(np.float32), 'y': src[:, 1].astype(np.float32),
-                           'z': src[:, 2].astype(np.float32), 'dx': D[:, 0], 'dy': D[:, 1],
-                           'dz': D[:, 2]}, self.factory, stamp, str(msg.header.frame_id))
-        return [(TOPICS['aligned'], PC2, aligned),
-                (TOPICS['transform'], 'geometry_msgs/msg/TransformStamped',
-                 transform_msg(self.factory, res.T_target_source, stamp, frame,
-                               str(msg.header.frame_id))),
-                (TOPICS['displacement'], PC2, disp)]
-
+        return res
 
     def _priors(self, ids: np.ndarray, count: int) -> np.ndarray:
         """(K, 2) (cloud index, reference index) pairs of shared track ids, evenly spread."""

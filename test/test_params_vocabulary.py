@@ -20,6 +20,7 @@ from nrsfm_ros.core.sceneflow.msf import MSF, MSFConfig
 from nrsfm_ros.core.sceneflow.nrsfm_flow import object_poses
 from nrsfm_ros.core.tracking import MASKS, PRESETS, MFOFConfig, ReferenceFlowTracker
 from nrsfm_ros.io.msgtypes import RosbagsFactory
+from nrsfm_ros.core.registration.rays import ray_pose
 from nrsfm_ros.params import (NODE_DEFAULTS, ReconstructorParams, RegistrarParams,
                               SceneFlowParams, TrackerParams)
 from nrsfm_ros.processing import (ReconstructorProcessor, RegistrarProcessor,
@@ -53,7 +54,8 @@ CORE = {
     'registrar': [
         (_ICP, {n: n for n in ('max_iterations', 'max_points', 'tolerance', 'trim', 'voxel',
                                'init', 'inlier_threshold')}),
-        (_CPD, {n: n for n in ('w', 'beta', 'lam')})],
+        (_CPD, {n: n for n in ('w', 'beta', 'lam')}),
+        (signature_defaults(ray_pose), {'depth_weight': 'depth_weight'})],
     'reconstructor': [
         (signature_defaults(make_stream.__globals__['StreamNRSfM']),
          {n: n for n in ('mode', 'window', 'rank', 'iterations', 'method', 'batch_frames',
@@ -183,6 +185,21 @@ def test_registrar_ranges_are_the_cores(method):
     bad = []
     for name in REGISTRAR_FIELDS[method]:
         bad += compare(RegistrarParams, base, name, choices.get(name, ()), make)
+    assert not bad, bad
+
+
+def test_registrar_match_track_id_ranges_are_the_cores():
+    """depth_weight, max_iterations, max_points, tolerance as the ray pose takes them."""
+    src, dst = _clouds()
+    base = RegistrarParams()
+
+    def make(p):
+        return ray_pose(src + [0, 0, 10], dst, 0.1, depth_weight=p.depth_weight,
+                        max_iterations=p.max_iterations, tolerance=p.tolerance,
+                        max_points=p.max_points)
+    bad = []
+    for name in ('depth_weight', 'max_iterations', 'max_points', 'tolerance'):
+        bad += compare(RegistrarParams, base, name, (), make)
     assert not bad, bad
 
 

@@ -82,6 +82,7 @@ PARAM_RULES: dict[str, Rule] = {
     'lam': _positive,
     'inlier_threshold': lambda v: None if _finite(v) and v >= 0
     else 'must be >= 0 (0: 2% of the target diagonal)',
+    'depth_weight': lambda v: None if _finite(v) and 0 <= v <= 1 else 'must be in [0, 1]',
     'max_points': lambda v: None if _finite(v) and v == int(v) and (
         v == 0 or v >= MIN_POINT_BUDGET) else f'must be 0 (all) or >= {MIN_POINT_BUDGET}',
 }
