@@ -564,6 +564,13 @@ class RegistrarProcessor(Processor):
     def handlers(self) -> dict[str, Handler]:
         return {'reference': self.on_reference, 'points': self.on_points}
 
+    def status(self) -> dict[str, str]:
+        """Clouds posed from their track ids (match track_id; the rest by ``method``), clouds
+        published unmoved by the identity guard, and the depth reflection in use."""
+        return {'posed_by_track_id': str(self.matched_by_id),
+                'identity_kept': str(self.identity_kept),
+                'reflected': str(bool(self.last_reflected)).lower()}
+
     def __init__(self, factory: MsgFactory, params: RegistrarParams | None = None) -> None:
         super().__init__(factory, params)
         self.reference: np.ndarray | None = None

@@ -182,7 +182,7 @@ def test_registrar_beats_the_identity_on_the_pipeline():
     assert len(clouds) == seq.S.shape[0]
     ident = np.median(_rotation_errors(seq, {f: np.eye(4) for f in clouds}))
     ours, proc = _register_stream(seq, clouds, RegistrarParams())
-    assert proc.matched_by_id == len(clouds)
+    assert proc.status()['posed_by_track_id'] == str(len(clouds))
     nearest, _ = _register_stream(seq, clouds, RegistrarParams(match='nearest'))
     e_ours = np.median(_rotation_errors(seq, ours))
     e_nearest = np.median(_rotation_errors(seq, nearest))
