@@ -305,7 +305,8 @@ class RegistrarParams(Params):
                       'front of its camera (a camera optical frame, as nrsfm/points), is posed '
                       'from those matches trusting its viewing rays over its depth (robust '
                       'Gauss-Newton from the previous pose; the previous pose or the identity '
-                      'wins where it explains the matches better); other clouds, and nearest, '
+                      'wins where it explains the matches better); other clouds (and those '
+                      'whose matches are < 5% inliers: ids naming other points), and nearest, '
                       'use method')
     depth_weight: float = rule(0.1, _REG['depth_weight'],
                                'match track_id: weight of the error along each viewing ray '

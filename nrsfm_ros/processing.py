@@ -22,8 +22,8 @@ from .core import hdmnet as hdmnet_core
 from .core.registration import register
 from .core.registration.base import (RegistrationResult, make_result, resolve_threshold,
                                      rigid_result, robust_residual)
-from .core.registration.rays import (MIN_MATCHES, invert, mirror_along_rays, ray_cost,
-                                     ray_pose, ray_residuals)
+from .core.registration.rays import (MIN_INLIER_FRACTION, MIN_MATCHES, invert,
+                                     mirror_along_rays, ray_cost, ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
 from .core.tracking.reference_flow import reference_pixels
@@ -637,7 +637,9 @@ class RegistrarProcessor(Processor):
         """The pose from the track ids the cloud shares with the reference, trusting its
         viewing rays over its depth (``core.registration.rays``), warm-started from the previous
         cloud's pose; None where the cloud cannot be posed that way (fewer than MIN_MATCHES
-        shared ids, or not a camera-frame cloud: a point at z <= 0).  Candidates, scored by one
+        shared ids, not a camera-frame cloud: a point at z <= 0, or fewer than
+        MIN_INLIER_FRACTION of the matches within inlier_threshold of the pose: ids that do not
+        name the same points as the reference's).  Candidates, scored by one
         robust ray cost: the solve (on reflection checks also the solve of the cloud mirrored
         along its rays), the previous pose unchanged, and the identity (``identity_guard``)."""
         p = self.params
@@ -656,25 +658,28 @@ class RegistrarProcessor(Processor):
         check = p.try_reflection and p.depth_weight > 0 and self._checks % 10 == 0
         solves = {refl: ray_pose(sources[refl][si], target, thr, init=self._last_T, **kw)
                   for refl in ((False, True) if check else (self.last_reflected,))}
+        evidence, refl = self._mirror_evidence, self.last_reflected
         if check:
             # one frame's costs of a deforming surface may favour either reflection: the
             # evidence adds up over the checks (each capped at a factor 4), the sum decides
             ratio = solves[False][1] / max(solves[True][1], 1e-300)
-            self._mirror_evidence += float(np.clip(np.log(max(ratio, 1e-300)), -np.log(4),
-                                                   np.log(4)))
-            self.last_reflected = self._mirror_evidence > 0
-        res, cost = solves[self.last_reflected]
-        moving = sources[self.last_reflected]
+            evidence += float(np.clip(np.log(max(ratio, 1e-300)), -np.log(4), np.log(4)))
+            refl = evidence > 0
+        res, cost = solves[refl]
+        moving = sources[refl]
         d = moving[si] / np.linalg.norm(moving[si], axis=1, keepdims=True)
         others = [('previous', self._last_T)] if self._last_T is not None else []
         if p.identity_guard:
             others.append(('identity', np.eye(4)))
         T, method = res.T_target_source, 'rays'
+        r = ray_residuals(invert(T), target, moving[si], d, p.depth_weight)
         for name, T_other in others:
-            c = ray_cost(ray_residuals(invert(T_other), target, moving[si], d, p.depth_weight),
-                         thr)
-            if c < cost:
-                T, method, cost = T_other, name, c
+            r_other = ray_residuals(invert(T_other), target, moving[si], d, p.depth_weight)
+            if ray_cost(r_other, thr) < cost:
+                T, method, cost, r = T_other, name, ray_cost(r_other, thr), r_other
+        if np.mean(r <= thr) < MIN_INLIER_FRACTION:
+            return None       # the shared ids do not name the same points: nearest neighbours
+        self._mirror_evidence, self.last_reflected = evidence, refl
         self.identity_kept += method == 'identity'
         self.matched_by_id += 1
         # the whole cloud moved (the solve saw only the matched points)

@@ -210,6 +210,17 @@ def test_registrar_match_falls_back_and_keeps_a_better_previous_pose():
     # foreign ids: no shared track, the method (ICP) registers by nearest neighbours
     proc.handle('points', _ids_cloud(src, ids + 10_000, 2))
     assert proc.matched_by_id == 1
+    # ids that name other points (shuffled): < 5% of the matches fit any pose, so ICP runs
+    shuffled = RegistrarProcessor(FAC, RegistrarParams())
+    shuffled.handle('reference', _ids_cloud(ref, ids, 0))
+    out = {t: m for t, _, m in shuffled.handle('points', _ids_cloud(
+        src, np.random.default_rng(1).permutation(ids), 1))}
+    assert shuffled.matched_by_id == 0
+    icp = RegistrarProcessor(FAC, RegistrarParams(match='nearest'))
+    icp.handle('reference', _ids_cloud(ref, ids, 0))
+    want = {t: m for t, _, m in icp.handle('points', _ids_cloud(src, ids, 1))}
+    np.testing.assert_array_equal(pc2.read_xyz(out['registration/aligned']),
+                                  pc2.read_xyz(want['registration/aligned']))
     near = RegistrarProcessor(FAC, RegistrarParams(match='nearest'))
     near.handle('reference', _ids_cloud(ref, ids, 0))
     near.handle('points', _ids_cloud(src, ids, 1))

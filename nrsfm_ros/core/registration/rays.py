@@ -27,6 +27,10 @@ from scipy.spatial import cKDTree
 from .base import RegistrationResult, apply, check_param, make_result
 
 MIN_MATCHES = 6          # fewest matched points a pose is solved from
+# below this fraction of the matches within the threshold of the pose, the matches do not name
+# the same points (track ids from an unrelated source): the pipeline's reconstructions keep
+# >= 0.16 (flag 60 deg amplitude 2), shuffled ids of the same clouds <= 0.01
+MIN_INLIER_FRACTION = 0.05
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
