@@ -8,7 +8,9 @@ ICP's ``init='global'`` starts it from a search over all rotations (``global_pos
 Modules: ``base`` (result, checks, Kabsch, normalisation, fitness), ``refine`` (trimmed ICP
 iterations) and ``kernels`` (Nystrom features) are building blocks; each method module (icp,
 cpd, gravitational, bhrga, nrga) and the global start (globalsearch) imports only those, never
-another method (icp imports the global start for ``init='global'``)."""
+another method (icp imports the global start for ``init='global'``). ``rays`` poses a
+camera-frame cloud from matched points (the registrar's ``match: track_id``), trusting its viewing
+rays over its depth; it imports only ``base``."""
 from __future__ import annotations
 
 from typing import Any
