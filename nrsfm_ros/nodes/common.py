@@ -136,10 +136,18 @@ class ProcessorNode(Node):
         events = SubscriptionEventCallbacks(
             message_lost=lambda info: self._dropped(kind, int(info.total_count_change)))
         self.create_subscription(rclpy_class(msgtype), topic,
-                                 lambda msg: self.queue.put(kind, msg), qos,
+                                 lambda msg: self._enqueue(kind, msg), qos,
                                  callback_group=self.input_group, event_callbacks=events)
 
+    def _enqueue(self, kind: str, msg: Any) -> None:
+        # an input the current parameters do not use (the reconstructor's camera images outside
+        # mode hdmnet) never takes a place in the queue nor counts as dropped
+        if self.processor.accepts(kind):
+            self.queue.put(kind, msg)
+
     def _dropped(self, kind: str, n: int = 1) -> None:
+        if not self.processor.accepts(kind):
+            return
         self.processor.stats.dropped += n
         self.processor.stats.count_error(f'{kind}:dropped', f'{kind}: {n} message(s) dropped '
                                          f'(input queue full or lost in transport)')
