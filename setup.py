@@ -19,7 +19,7 @@ setup(
     package_data={package_name: ['models/hdmnet.onnx', 'models/hdmnet.json']},
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
                       'PyYAML', 'onnxruntime'],   # onnxruntime: HDM-Net inference
-    extras_require={'plot': ['matplotlib'],      # nrsfm-ros evaluate --plot
+    extras_require={'plot': ['matplotlib', 'pillow'],   # evaluate --plot / --render (gif)
                     'view': ['foxglove-sdk>=0.30.3'],    # nrsfm-ros view
                     'ray': ['ray==2.58.0'],               # nrsfm-ros process --ray
                     # nrsfm-ros train-hdmnet (the CPU wheel is enough; the ONNX export needs onnx)
