@@ -39,6 +39,11 @@ def _one_of(*values: str) -> Callable[[Any], str | None]:
     return lambda v: None if v in values else f'expected one of {list(values)}'
 
 
+def _frame_id(v: Any) -> str | None:
+    ok = isinstance(v, str) and v != '' and not v.startswith('/') and ' ' not in v
+    return None if ok else 'expected a non-empty frame id without a leading / or spaces'
+
+
 def _positive(v: Any) -> str | None:
     return None if v > 0 and math.isfinite(v) else 'must be a finite number > 0'
 
@@ -321,6 +326,11 @@ class RegistrarParams(Params):
                                 'depth reflection ambiguity) on the first cloud and every '
                                 '10th, and keep the better fit (match track_id: the cost ratios '
                                 'of the checks add up and their sum decides)')
+    world_frame: str = rule('nrsfm_reference', _frame_id,
+                            'parent frame of registration/camera_pose (child: the clouds\' '
+                            'camera optical frame): the reference camera\'s optical frame at '
+                            'the reference\'s stamp, fixed to the registered surface (a '
+                            'world-fixed frame in the sense of REP-105 while the surface stays)')
     queue_size: int = _queue_size()
     queue_policy: str = _queue_policy()
 

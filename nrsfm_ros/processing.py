@@ -50,6 +50,7 @@ TOPICS = {
     'nrsfm_depth': 'nrsfm/depth',
     'reference': 'registration/reference', 'aligned': 'registration/aligned',
     'transform': 'registration/transform', 'displacement': 'registration/displacement',
+    'camera_pose': 'registration/camera_pose',
     'scene_flow': 'scene_flow/points', 'markers': 'scene_flow/markers',
     'diagnostics': '/diagnostics',
 }
@@ -630,7 +631,12 @@ class RegistrarProcessor(Processor):
                 (TOPICS['transform'], 'geometry_msgs/msg/TransformStamped',
                  transform_msg(self.factory, res.T_target_source, stamp, frame,
                                str(msg.header.frame_id))),
-                (TOPICS['displacement'], PC2, disp)]
+                (TOPICS['displacement'], PC2, disp),
+                # the same transform as the camera's pose in the frame tree: source points in
+                # this camera's frame -> the reference camera's frame (world_frame)
+                (TOPICS['camera_pose'], 'geometry_msgs/msg/TransformStamped',
+                 transform_msg(self.factory, res.T_target_source, stamp,
+                               self.params.world_frame, str(msg.header.frame_id)))]
 
     def _pose_by_track_id(self, src: np.ndarray, ids: np.ndarray
                           ) -> RegistrationResult | None:

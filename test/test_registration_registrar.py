@@ -40,7 +40,7 @@ def test_registrar_accepts_the_smallest_trim_the_core_takes():
     X = _sheet()
     proc = RegistrarProcessor(FAC, RegistrarParams(trim=0.1, try_reflection=False))
     proc.handle('reference', _cloud(X, 0))
-    assert len(proc.handle('points', _cloud(X + [0.05, 0, 0], 1))) == 3
+    assert len(proc.handle('points', _cloud(X + [0.05, 0, 0], 1))) == 4   # + camera_pose
 
 
 def test_registrar_never_worse_than_the_identity_on_deforming_clouds():
@@ -204,9 +204,18 @@ def test_registrar_match_falls_back_and_keeps_a_better_previous_pose():
     src = ref @ Tinv[:3, :3].T + Tinv[:3, 3]
     proc = RegistrarProcessor(FAC, RegistrarParams())
     proc.handle('reference', _ids_cloud(ref, ids, 0))
-    proc.handle('points', _ids_cloud(src, ids, 1))
+    out = {t: m for t, _, m in proc.handle('points', _ids_cloud(src, ids, 1))}
     assert proc.matched_by_id == 1
     np.testing.assert_allclose(proc._last_T, T, atol=1e-6)
+    # the same result as the camera's pose in the frame tree: nrsfm_reference -> the cloud's frame
+    from nrsfm_ros.processing import transform_matrix
+    pose, cloud = out['registration/camera_pose'], out['registration/displacement']
+    assert (pose.header.frame_id, pose.child_frame_id) == ('nrsfm_reference',
+                                                          cloud.header.frame_id)
+    assert pose.header.stamp == cloud.header.stamp
+    np.testing.assert_allclose(transform_matrix(pose), T, atol=1e-6)
+    with pytest.raises(ValueError, match='world_frame'):
+        RegistrarParams().updated({'world_frame': '/world'})
     # foreign ids: no shared track, the method (ICP) registers by nearest neighbours
     proc.handle('points', _ids_cloud(src, ids + 10_000, 2))
     assert proc.matched_by_id == 1

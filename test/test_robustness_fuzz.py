@@ -284,7 +284,7 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
                                                               10 ** 12 + i, 'cam'))
     assert sum(t == 'nrsfm/tracks' for t, _, _ in out) == 3
     reg.handle('reference', points_msg(rng, 0))
-    assert len(reg.handle('points', points_msg(rng, 1))) == 3
+    assert len(reg.handle('points', points_msg(rng, 1))) == 4
     assert len(flow.handle('points', points_msg(rng, 10 ** 6))) == 2
     elapsed = time.perf_counter() - t0
     failed = {k: v for p in procs.values() for k, v in p.stats.errors.items()

@@ -1,5 +1,6 @@
 """registrar node: nrsfm/points + registration/reference (transient local) ->
-registration/aligned, registration/transform, registration/displacement."""
+registration/aligned, registration/transform, registration/displacement,
+registration/camera_pose (world_frame -> the clouds' camera optical frame)."""
 from __future__ import annotations
 
 import sys
@@ -13,7 +14,8 @@ class RegistrarNode(ProcessorNode):
         super().__init__('registrar', RegistrarProcessor,
                          [('aligned', 'sensor_msgs/msg/PointCloud2'),
                           ('transform', 'geometry_msgs/msg/TransformStamped'),
-                          ('displacement', 'sensor_msgs/msg/PointCloud2')])
+                          ('displacement', 'sensor_msgs/msg/PointCloud2'),
+                          ('camera_pose', 'geometry_msgs/msg/TransformStamped')])
         self.subscribe('reference', 'sensor_msgs/msg/PointCloud2', LATCHED)
         self.subscribe('points', 'sensor_msgs/msg/PointCloud2', RELIABLE)
 

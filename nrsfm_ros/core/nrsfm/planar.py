@@ -28,9 +28,10 @@ flat (the RMS of the time-mean height field over the RMS in-plane extent, ``rest
 at most ``PLANAR_REST_RATIO``) and the model explains the tracks not much worse than the rigid
 factorisation does (reprojection residual at most ``PLANAR_RIGID_RATIO`` times rigid's: a
 curved surface seen over a small camera motion can look flat to the first test, but the flat
-rest and the height field along one normal then cannot follow its image).  (The cameras' orthonormality misfit is no test: it passes any shape when
-the camera moves little, and fails a flag seen by a wide camera motion through perspective and
-tracking noise.)  Frames must be in temporal order.
+rest and the height field along one normal then cannot follow its image).  (The cameras'
+orthonormality misfit is no test: it passes any shape when the camera moves little, and fails a
+flag seen by a wide camera motion through perspective and tracking noise.)  Frames must be in
+temporal order.
 """
 from __future__ import annotations
 
