@@ -29,6 +29,7 @@ OUTPUTS = {TOPICS[k]: t for k, t in [
     ('aligned', 'sensor_msgs/msg/PointCloud2'),
     ('transform', 'geometry_msgs/msg/TransformStamped'),
     ('displacement', 'sensor_msgs/msg/PointCloud2'),
+    ('camera_pose', 'geometry_msgs/msg/TransformStamped'),
     ('scene_flow', 'sensor_msgs/msg/PointCloud2'),
     ('markers', 'visualization_msgs/msg/MarkerArray'),
     ('diagnostics', 'diagnostic_msgs/msg/DiagnosticArray')]}
@@ -137,7 +138,8 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
 def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str:
     rows = [('frames in (camera/image_raw)', str(s['frames_in']))]
     for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['nrsfm_depth'], TOPICS['aligned'],
-                  TOPICS['transform'], TOPICS['displacement'], TOPICS['scene_flow'],
+                  TOPICS['transform'], TOPICS['displacement'], TOPICS['camera_pose'],
+                  TOPICS['scene_flow'],
                   TOPICS['markers'],
                   TOPICS['flow']):
         rows.append((f'frames out ({topic})', str(s['outputs'].get(topic, 0))))

@@ -60,7 +60,8 @@ def test_live_graph(sample):
     assert not live['graph_exit']
     s = summarise(root / 'live', seq, root / 'render')
     for topic in ('nrsfm/tracks', 'nrsfm/points', 'nrsfm/depth', 'registration/aligned',
-                  'scene_flow/points', 'registration/transform', 'scene_flow/markers'):
+                  'scene_flow/points', 'registration/transform', 'registration/camera_pose',
+                  'scene_flow/markers'):
         assert s['outputs'].get(topic) == CFG.frames, topic
     assert_beats_baselines(s, seq)
     assert set(s['latency_ms']) == {'tracker', 'reconstructor', 'registrar', 'scene_flow'}
