@@ -94,6 +94,8 @@ def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSf
             return res
         method = 'bmm'
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
+    if method == 'planar':          # chosen (by the user or by auto's first decision): the
+        kw = {'rigid_check': False}  # stream never reads converged, skip its rigid solve
     return reconstruct(W, V, method=method, **kw)
 
 
