@@ -7,6 +7,13 @@ bag into it with the recorded timing, :func:`bridge_live` feeds it from rclpy su
 Open ``ws://HOST:PORT`` in Foxglove (Open connection -> Foxglove WebSocket) with
 ``config/foxglove_layout.json`` (:func:`layout`).
 
+The camera pose is a FrameTransform to ``camera_optical_frame``: from ``ground_truth/camera_pose``
+(``world`` ->) where the bag or the live graph has it, else from the registrar's estimate
+``registration/camera_pose`` (``nrsfm_reference`` ->, its ``world_frame``).  Both parent the
+clouds' frame and a frame has one parent, so the estimate yields (``Route.yields_to``): a bag with
+the ground truth does not advertise ``/registration/camera_pose``; live, it is published until
+the first ground-truth pose arrives, then counted in ``yielded``.
+
 Bag playback waits for a client's first subscription (then :data:`SUBSCRIBE_SETTLE_S` for the
 rest of its subscriptions), so nothing is played to nobody; the recorded times are shifted to
 the wall clock at each start, so ``--loop`` runs forward in time and Foxglove treats the data
@@ -81,6 +88,8 @@ class Viewer:
         self.counts: dict[str, int] = {}          # Foxglove topic -> messages logged
         self.errors: dict[str, int] = {}          # ROS topic -> messages not shown
         self.last_error: dict[str, str] = {}      # ROS topic -> why (the latest)
+        self.yielded: dict[str, int] = {}         # Foxglove topic -> messages not shown
+        self._seen: set[str] = set()              # ROS topics a message was published of
         self.started = threading.Event()          # playback began (see play_bag)
         self.started_at = 0.0                     # time.monotonic() of that
         self._closed = False
@@ -107,9 +116,15 @@ class Viewer:
     def publish(self, topic: str, msg: Any, stamp_ns: int | None = None,
                 log_time_ns: int | None = None) -> int:
         """Convert a ROS message of ``topic`` by its routes and log it; returns how many
-        Foxglove messages went out.  A message a converter rejects is counted in ``errors``."""
+        Foxglove messages went out.  A message a converter rejects is counted in ``errors``;
+        one of a route that yields to a topic already seen, in ``yielded``."""
         n = 0
-        for r in self._routes.get(topic.lstrip('/'), ()):
+        topic = topic.lstrip('/')
+        self._seen.add(topic)
+        for r in self._routes.get(topic, ()):
+            if r.yields_to and r.yields_to in self._seen:
+                self.yielded[r.out_topic] = self.yielded.get(r.out_topic, 0) + 1
+                continue
             try:
                 out = r.convert(msg, stamp_ns)
             except (MessageError, ValueError, AttributeError, TypeError) as err:
@@ -296,6 +311,8 @@ def serve(bag: str | Path | None = None, host: str = '127.0.0.1', port: int = DE
             stop.set()
             for topic, n in viewer.counts.items():
                 out(f'  {topic}: {n} messages')
+            for topic, n in viewer.yielded.items():
+                out(f'  {topic}: {n} not shown (the ground-truth pose is served)')
             for topic, n in viewer.errors.items():
                 out(f'  {topic}: {n} not shown ({viewer.last_error[topic]})')
     return viewer

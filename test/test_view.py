@@ -1,6 +1,7 @@
 """nrsfm-ros view: the converters (message -> Foxglove object), the Foxglove WebSocket protocol
 against a played bag (serverInfo, advertise, subscribe, a message per channel within 2 s of the
-bag starting), the live bridge, the shipped layout, the CLI verb and a clean shutdown."""
+bag starting; the camera pose from the ground truth, else from the registrar's estimate), the
+live bridge, the shipped layout, the CLI verb and a clean shutdown."""
 from __future__ import annotations
 
 import json
@@ -140,6 +141,12 @@ def bags(tmp_path_factory):
     d = tmp_path_factory.mktemp('view')
     write_sequence_bag(generate(SynthConfig(width=64, height=48, frames=10)), d / 'in')
     process_bag(d / 'in', d / 'out', progress=False, copy_inputs=True)
+    # the outputs without the ground truth, as a live camera's bag: the estimated pose shows
+    from nrsfm_ros.io.bag import BagWriter, deserialize, read_messages
+    with BagWriter(d / 'estimated') as w:
+        for m in read_messages(d / 'out'):
+            if not m.topic.startswith('ground_truth/'):
+                w.write(m.topic, m.msgtype, deserialize(m.raw, m.msgtype), m.stamp_ns)
     return d
 
 
@@ -170,16 +177,17 @@ def _handshake(ws, expected):
     return channels
 
 
-def test_protocol_a_message_per_channel_within_2s(bags):
-    expected = {r.out_topic: r.schema.__name__ for r in view.bag_routes(bags / 'out')}
-    assert {'/nrsfm/points', '/camera/image_raw', '/nrsfm/depth', '/camera/depth/image_raw',
-            '/scene_flow/arrows', '/ground_truth/camera_pose'} <= set(expected)
+def _first_messages(bag):
+    """Play ``bag`` to a WebSocket client subscribed to every channel; returns ({Foxglove
+    topic: schema}, {topic: (s after the bag started, the first message's payload)}), asserting
+    a message per channel within TARGET_S and a clean shutdown."""
+    expected = {r.out_topic: r.schema.__name__ for r in view.bag_routes(bag)}
     stop = threading.Event()
     played = {}
     viewer = view.Viewer('127.0.0.1', 0)
     port = viewer.port
     thread = threading.Thread(target=lambda: played.update(
-        view.play_bag(viewer, bags / 'out', stop=stop)), daemon=True)
+        view.play_bag(viewer, bag, stop=stop)), daemon=True)
     thread.start()
     try:
         with websockets_client.connect(viewer.url, subprotocols=[SUBPROTOCOL],
@@ -193,7 +201,7 @@ def test_protocol_a_message_per_channel_within_2s(bags):
             ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
                 {'id': i, 'channelId': channels[t]['id']} for i, t in subs.items()]}))
             assert viewer.started.wait(5), 'playback did not start on subscription'
-            first: dict[str, tuple[float, int]] = {}
+            first: dict[str, tuple[float, bytes]] = {}
             while len(first) < len(subs):
                 left = viewer.started_at + TARGET_S - time.monotonic()
                 assert left > 0, f'no message within {TARGET_S} s on ' \
@@ -203,15 +211,13 @@ def test_protocol_a_message_per_channel_within_2s(bags):
                     _, sub_id, log_time = struct.unpack_from('<BIQ', frame)
                     topic = subs[sub_id]
                     first.setdefault(topic, (time.monotonic() - viewer.started_at,
-                                             len(frame) - 13))
+                                             bytes(frame[13:])))
                     assert abs(log_time - time.time_ns()) < 60 * 10**9   # shifted to now
             slowest = max(t for t, _ in first.values())
-            print(f'view protocol: {len(first)} channels, the last first message '
-                  f'{slowest:.3f} s after the bag started')
+            print(f'view protocol ({bag.name}): {len(first)} channels, the last first '
+                  f'message {slowest:.3f} s after the bag started')
             assert slowest < TARGET_S
-            assert all(n > 0 for _, n in first.values())
-            # a cloud of 64x48 px: thousands of bytes of points, not an empty message
-            assert first['/nrsfm/points'][1] > 1000
+            assert all(len(b) > 0 for _, b in first.values())
     finally:
         stop.set()
         thread.join(timeout=10)
@@ -219,6 +225,78 @@ def test_protocol_a_message_per_channel_within_2s(bags):
     assert not thread.is_alive()
     assert not viewer.errors, viewer.last_error
     assert _port_free(port), f'port {port} still bound after close()'
+    return expected, first
+
+
+def _frames_of(payload):
+    """(parent_frame_id, child_frame_id) of an encoded foxglove.FrameTransform (protobuf fields
+    2 and 3; the other fields are skipped by their wire type)."""
+    def varint(at):
+        v = shift = 0
+        while True:
+            b = payload[at]
+            v |= (b & 0x7F) << shift
+            at, shift = at + 1, shift + 7
+            if b < 0x80:
+                return v, at
+    out, at = {}, 0
+    while at < len(payload):
+        key, at = varint(at)
+        kind = key & 7
+        if kind == 0:
+            _, at = varint(at)
+        elif kind == 1:
+            at += 8
+        elif kind == 5:
+            at += 4
+        else:
+            n, at = varint(at)
+            out[key >> 3] = payload[at:at + n]
+            at += n
+    return out[2].decode(), out[3].decode()
+
+
+def test_protocol_a_message_per_channel_within_2s(bags):
+    expected, first = _first_messages(bags / 'out')
+    assert {'/nrsfm/points', '/camera/image_raw', '/nrsfm/depth', '/camera/depth/image_raw',
+            '/scene_flow/arrows', '/ground_truth/camera_pose'} <= set(expected)
+    # the ground truth parents camera_optical_frame: the estimate yields to it
+    assert '/registration/camera_pose' not in expected
+    assert _frames_of(first['/ground_truth/camera_pose'][1]) == (fv.WORLD_FRAME,
+                                                                 fv.CAMERA_FRAME)
+    # a cloud of 64x48 px: thousands of bytes of points, not an empty message
+    assert len(first['/nrsfm/points'][1]) > 1000
+
+
+def test_protocol_estimated_camera_pose_without_ground_truth(bags):
+    """A bag without ground_truth/camera_pose: registration/camera_pose is the camera's
+    FrameTransform, nrsfm_reference (the registrar's world_frame) -> camera_optical_frame."""
+    expected, first = _first_messages(bags / 'estimated')
+    assert not any(t.startswith('/ground_truth/') for t in expected)
+    assert expected['/registration/camera_pose'] == 'FrameTransform'
+    from nrsfm_ros.params import RegistrarParams
+    assert _frames_of(first['/registration/camera_pose'][1]) == (RegistrarParams().world_frame,
+                                                                 fv.CAMERA_FRAME)
+
+
+def test_estimated_pose_yields_to_the_ground_truth_live():
+    """Live (no topic list up front): registration/camera_pose is shown until the first
+    ground-truth pose arrives, then counted as yielded; a bag's routes leave it out."""
+    from nrsfm_ros.processing import transform_msg
+    T = np.eye(4)
+    est = transform_msg(FAC, T, 10**9, 'nrsfm_reference', fv.CAMERA_FRAME)
+    gt = transform_msg(FAC, T, 10**9, fv.WORLD_FRAME, fv.CAMERA_FRAME)
+    with view.Viewer(port=0) as viewer:
+        viewer.advertise(fv.ROUTES)
+        assert viewer.publish('registration/camera_pose', est) == 1
+        assert viewer.publish('/ground_truth/camera_pose', gt) == 1
+        assert viewer.publish('registration/camera_pose', est) == 0
+        assert viewer.counts['/registration/camera_pose'] == 1
+        assert viewer.yielded == {'/registration/camera_pose': 1}
+    both = {r.topic: r.msgtype for r in fv.ROUTES}
+    assert '/registration/camera_pose' not in {r.out_topic for r in fv.routes_for(both)}
+    del both['ground_truth/camera_pose']
+    assert '/registration/camera_pose' in {r.out_topic for r in fv.routes_for(both)}
 
 
 def test_playback_waits_for_a_client_and_stops(bags):

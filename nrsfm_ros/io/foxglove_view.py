@@ -226,13 +226,15 @@ Converter = Callable[[Any, 'int | None'], Any]
 @dataclass(frozen=True)
 class Route:
     """ROS ``topic`` (``msgtype``) -> Foxglove channel ``out_topic`` of ``schema`` via
-    ``convert``."""
+    ``convert``; a route with ``yields_to`` is off where that ROS topic is present (a bag that
+    has it: not advertised; live: nothing more published once a message of it arrived)."""
 
     topic: str
     msgtype: str
     out_topic: str
     schema: type
     convert: Converter
+    yields_to: str = ''
 
 
 PC2 = 'sensor_msgs/msg/PointCloud2'
@@ -240,6 +242,10 @@ IMAGE = 'sensor_msgs/msg/Image'
 TRANSFORM = 'geometry_msgs/msg/TransformStamped'
 
 # registration/transform is not routed: its parent and child are both the camera frame.
+# The camera pose: ground_truth/camera_pose (world -> camera_optical_frame) where there is one,
+# else the estimate registration/camera_pose (world_frame, default nrsfm_reference ->
+# camera_optical_frame): both parent the clouds' frame, and a frame has one parent in a tree.
+GT_POSE_TOPIC = 'ground_truth/camera_pose'
 ROUTES: tuple[Route, ...] = (
     Route('camera/image_raw', IMAGE, '/camera/image_raw', fm.RawImage, image_to_rawimage),
     Route('camera/depth/image_raw', IMAGE, '/camera/depth/image_raw', fm.RawImage,
@@ -258,12 +264,16 @@ ROUTES: tuple[Route, ...] = (
     Route('scene_flow/points', PC2, '/scene_flow/arrows', fm.SceneUpdate, flow_to_arrows),
     Route('ground_truth/points', PC2, '/ground_truth/points', fm.PointCloud,
           cloud_to_pointcloud),
-    Route('ground_truth/camera_pose', TRANSFORM, '/ground_truth/camera_pose',
+    Route(GT_POSE_TOPIC, TRANSFORM, '/ground_truth/camera_pose',
           fm.FrameTransform, transform_to_frame_transform),
+    Route('registration/camera_pose', TRANSFORM, '/registration/camera_pose',
+          fm.FrameTransform, transform_to_frame_transform, yields_to=GT_POSE_TOPIC),
     Route('tf', 'tf2_msgs/msg/TFMessage', '/tf', fm.FrameTransforms, tf_to_frame_transforms),
 )
 
 
 def routes_for(topics: dict[str, str]) -> list[Route]:
-    """The routes whose ROS topic is in ``topics`` ({name without '/': type}) with that type."""
-    return [r for r in ROUTES if topics.get(r.topic) == r.msgtype]
+    """The routes whose ROS topic is in ``topics`` ({name without '/': type}) with that type,
+    less those that yield to a topic in ``topics``."""
+    return [r for r in ROUTES if topics.get(r.topic) == r.msgtype
+            and not (r.yields_to and r.yields_to in topics)]
