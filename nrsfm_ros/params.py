@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from .core.registration.base import PARAM_RULES as _REG
+from .core.nrsfm.stream import BATCH_METHODS, MODES
 from .core.tracking import PARAM_RULES as _TRK
 from .core.tracking import MFOFConfig, ReferenceFlowTracker
 
@@ -18,6 +19,8 @@ _MFOF = MFOFConfig()
 _REF_TRACKER = {k: p.default for k, p in
                 inspect.signature(ReferenceFlowTracker).parameters.items()}
 TRACKER_METHODS = ('mfof', 'reference')
+# the stream's modes, and hdmnet: the node's own (per image, no tracks)
+RECONSTRUCTOR_MODES = (*MODES, 'hdmnet')
 
 # Defaults a node sets on purpose apart from the core function it calls (test/
 # test_params_vocabulary.py fails on any other disagreement, and on an entry here that agrees).
@@ -36,7 +39,15 @@ NODE_DEFAULTS = {
 
 
 def _one_of(*values: str) -> Callable[[Any], str | None]:
-    return lambda v: None if v in values else f'expected one of {list(values)}'
+    def check(v: Any) -> str | None:
+        return None if v in values else f'expected one of {list(values)}'
+    check.choices = values          # type: ignore[attr-defined]
+    return check
+
+
+def choices(cls: type, name: str) -> tuple[str, ...]:
+    """The values a one-of parameter ``name`` of ``cls`` allows."""
+    return next(f for f in fields(cls) if f.name == name).metadata['rule'].choices
 
 
 def _frame_id(v: Any) -> str | None:
@@ -185,7 +196,7 @@ class TrackerParams(Params):
 
 @dataclass(frozen=True)
 class ReconstructorParams(Params):
-    mode: str = rule('batch', _one_of('window', 'batch', 'online', 'dspr', 'spva', 'hdmnet'),
+    mode: str = rule('batch', _one_of(*RECONSTRUCTOR_MODES),
                      'batch: batch_frames frames at a time with method (the most accurate on '
                      'the pipeline benchmark); window: sliding window re-solved per frame '
                      '(lowest latency); online: the first window, then each frame fitted alone '
@@ -199,8 +210,7 @@ class ReconstructorParams(Params):
                      'hdmnet: no tracks, each camera image '
                      'alone through the learned HDM-Net (a 73 x 73 grid of a thin sheet-like '
                      'surface in metres, every frame; track_id = grid node)')
-    method: str = rule('auto', _one_of('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf',
-                                       'hdsm', 'va', 'planar'),
+    method: str = rule('auto', _one_of(*BATCH_METHODS),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
                        'planar, else bmm; window and online modes run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')

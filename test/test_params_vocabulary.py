@@ -212,6 +212,82 @@ def test_reconstructor_ranges_are_the_cores():
     assert not bad, bad
 
 
+# ------------------------------------------------------------------ the reconstructor's choices
+
+def _face_tracks(frames: int = 8):
+    from nrsfm_ros.io.synth import dense_tracks
+    d = dense_tracks('face', frames=frames, points=80, projection='orthographic',
+                     camera_motion_deg=30)
+    return d, np.arange(d['W'].shape[1])
+
+
+def _run(stream, d, ids) -> list:
+    out = []
+    for f in range(d['V'].shape[0]):
+        out += stream.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])
+    return out + stream.flush()
+
+
+def test_reconstructor_choices_are_the_cores():
+    """mode and method allow exactly the core's names (hdmnet: the node's own mode, per image):
+    the same tuples, and each value of the node's runs in the core (a shape per frame; a method
+    solves its batch itself, no fallback)."""
+    from nrsfm_ros.core.nrsfm import METHODS
+    from nrsfm_ros.core.nrsfm.stream import BATCH_METHODS, MODES, StreamNRSfM
+    modes = params.choices(ReconstructorParams, 'mode')
+    methods = params.choices(ReconstructorParams, 'method')
+    assert set(modes) == {*MODES, 'hdmnet'} and set(methods) == set(BATCH_METHODS)
+    assert set(methods) - {'auto'} <= set(METHODS)
+    d, ids = _face_tracks()
+    for m in methods:
+        p = ReconstructorParams().updated({'mode': 'batch', 'method': m, 'batch_frames': 8,
+                                           'projection': 'weak'})
+        s = make_stream(p)
+        assert len(_run(s, d, ids)) == 8, m
+        assert not s.fallbacks, (m, s.fallbacks)
+        assert s.last_method == m if m != 'auto' else s.last_method in ('planar', 'bmm')
+    for m in modes:
+        p = ReconstructorParams().updated({'mode': m, 'window': 4, 'batch_frames': 8,
+                                           'spva_prior_frames': 4})
+        proc = ReconstructorProcessor(FACTORY, p)
+        if m == 'hdmnet':              # no stream of tracks: the model, per image
+            assert proc.hdmnet is not None and proc.stream.mode == 'batch'
+            with pytest.raises(ValueError, match="mode='hdmnet'"):
+                StreamNRSfM(mode='hdmnet')
+            continue
+        assert proc.stream.mode == m
+        assert len(_run(proc.stream, d, ids)) == 8, m
+
+
+@pytest.mark.parametrize('name', ['mode', 'method'])
+def test_reconstructor_unknown_choice_names_field_and_value(name, rclpy_context):
+    """An unknown mode or method is refused by the parameters, the core and the node, each
+    naming the field and the value."""
+    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+    from nrsfm_ros.nodes.common import ProcessorNode
+    text = f"{name}='bogus'"
+    with pytest.raises(ValueError, match=text):
+        ReconstructorParams().updated({name: 'bogus'})
+    with pytest.raises(ValueError, match=text):
+        StreamNRSfM(**{name: 'bogus'})
+    with pytest.raises(ValueError, match=text):
+        ReconstructorProcessor(FACTORY, dataclasses.replace(ReconstructorParams(),
+                                                            **{name: 'bogus'}))
+    node = ProcessorNode('reconstructor', ReconstructorProcessor,
+                         [('points', 'sensor_msgs/msg/PointCloud2')], context=rclpy_context)
+    try:
+        from rclpy.parameter import Parameter
+        bad = node.set_parameters([Parameter(name, value='bogus')])[0]
+        assert not bad.successful and text in bad.reason, bad.reason
+        assert getattr(node.processor.params, name) == getattr(ReconstructorParams(), name)
+        for v in params.choices(ReconstructorParams, name):
+            ok = node.set_parameters([Parameter(name, value=v)])[0]
+            assert ok.successful, (v, ok.reason)
+            assert getattr(node.processor.params, name) == v
+    finally:
+        node.destroy_node()
+
+
 def test_scene_flow_ranges_are_the_cores():
     rng = np.random.default_rng(1)
     X = rng.normal(size=(30, 3))

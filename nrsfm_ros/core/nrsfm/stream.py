@@ -54,6 +54,9 @@ from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
 
 MODES = ('window', 'online', 'batch', 'dspr', 'spva')
+# the batch solves' methods (auto, or a name of core.nrsfm.METHODS; spva is a mode)
+BATCH_METHODS = ('auto', 'lowrank', 'rigid', 'bmm', 'smsr', 'amp', 'cdf', 'hdsm', 'va',
+                 'planar')
 PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
@@ -113,6 +116,8 @@ class StreamNRSfM:
                  spva_refresh: float = 0.0, spva_iterations: int = 20) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
+        if solver is None and method not in BATCH_METHODS:    # a solver takes its own names
+            raise ValueError(f'method={method!r}: expected one of {BATCH_METHODS}')
         if projection not in PROJECTIONS:
             raise ValueError(f'projection={projection!r}: expected one of {PROJECTIONS}')
         self.projection = projection
