@@ -2,12 +2,14 @@
 
     .venv/bin/python bench/bench_registration.py [--json out.json]
     .venv/bin/python bench/bench_registration.py --corpus [--trials 10] [--shapes N] [--peers]
+    .venv/bin/python bench/bench_registration.py --corpus --case 'blob 2:hard:4' [--case ...]
 
 ``--corpus`` (issue 15): success rate (rotation error <= 1 deg) over the shape corpus of
 bench/corpus.py (scans, procedural shapes, z-buffer partial views) x ``--trials`` uniform random
 rotations x {clean; 30% missing (a random plane cut) + 50% uniform outliers}, noise 0.005,
 diagonal 1, 35k points each side, with open3d FPFH + RANSAC + ICP (and with ``--peers`` the local
-peers) on the same cases.
+peers) on the same cases.  ``--case SHAPE:CONDITION:TRIAL`` (condition ``clean`` or ``hard``,
+trial from 0; repeatable) runs only those cases, each the same draw as in the full run.
 
 Data: ../shared/data/registration (Stanford bunny 34,834 points; CPD fish 2-D), scaled to
 bounding-box diagonal 1, Gaussian noise sigma = 0.005, target an independent permutation/subsample.
@@ -323,15 +325,42 @@ def symmetric_equivalent(S: np.ndarray, R_found: np.ndarray, R_true: np.ndarray)
     return float(cKDTree(S @ R_true.T).query(P @ R_found.T)[0].mean()) < 0.01
 
 
-def run_corpus(trials: int, shapes: int, all_peers: bool) -> list[dict]:
-    from corpus import corpus
+def parse_cases(specs: list[str], names: list[str]) -> dict[tuple[str, bool], set[int]]:
+    """``--case`` values 'SHAPE:CONDITION:TRIAL' -> {(shape, hard): trials}; a shape not in
+    ``names``, a condition other than clean / hard or a trial below 0 is an error naming it."""
+    out: dict[tuple[str, bool], set[int]] = {}
+    for spec in specs:
+        parts = spec.rsplit(':', 2)
+        if len(parts) != 3:
+            raise ValueError(f'--case {spec!r}: expected SHAPE:CONDITION:TRIAL')
+        name, cond, trial = parts
+        if name not in names:
+            raise ValueError(f'--case {spec!r}: shape {name!r} is not in the corpus '
+                             f'({", ".join(names)})')
+        if cond not in ('clean', 'hard'):
+            raise ValueError(f"--case {spec!r}: condition {cond!r}: expected 'clean' or 'hard'")
+        if not trial.isdigit():
+            raise ValueError(f'--case {spec!r}: trial {trial!r}: expected an integer >= 0')
+        out.setdefault((name, cond == 'hard'), set()).add(int(trial))
+    return out
+
+
+def run_corpus(trials: int, items: list[tuple[str, np.ndarray]], all_peers: bool,
+               picked: dict[tuple[str, bool], set[int]] | None = None) -> list[dict]:
+    """``items``: (name, shape) of the corpus, in its order (the seeds follow it); ``picked``:
+    only these cases (``parse_cases``), each drawn as in the full run (the draws of the trials
+    before it are made and skipped)."""
     rows = []
-    items = list(corpus().items())[:shapes or None]
     for si, (name, S) in enumerate(items):
         for hard in (False, True):
+            wanted = set(range(trials)) if picked is None else picked.get((name, hard), set())
+            if not wanted:
+                continue
             rng = np.random.default_rng(1000 * si + hard)
-            for trial in range(trials):
+            for trial in range(max(wanted) + 1):
                 src, tgt, R = corpus_case(S, rng, hard)
+                if trial not in wanted:
+                    continue
                 cond = '30% missing + 50% outliers' if hard else 'clean'
                 for label, (method, kw) in OURS_GLOBAL.items():
                     kw = {**kw, 'trim': 0.6 if hard else 0.9}
@@ -394,9 +423,20 @@ def main() -> int:
     p.add_argument('--trials', type=int, default=10, help='--corpus: rotations per shape')
     p.add_argument('--shapes', type=int, default=0, help='--corpus: first N shapes (0: all)')
     p.add_argument('--peers', action='store_true', help='--corpus: also the local peers')
+    p.add_argument('--case', action='append', default=[], metavar='SHAPE:CONDITION:TRIAL',
+                   help="--corpus: only this case (condition clean or hard, trial from 0; "
+                   "repeatable), e.g. 'blob 2:hard:4'")
     args = p.parse_args()
+    if args.case and not args.corpus:
+        p.error('--case needs --corpus')
     if args.corpus:
-        rows = run_corpus(args.trials, args.shapes, args.peers)
+        from corpus import corpus
+        items = list(corpus().items())[:args.shapes or None]
+        try:
+            picked = parse_cases(args.case, [n for n, _ in items]) if args.case else None
+        except ValueError as e:
+            p.error(str(e))
+        rows = run_corpus(args.trials, items, args.peers, picked)
         corpus_table(rows)
         if args.json:
             Path(args.json).write_text(json.dumps(rows, indent=1))
