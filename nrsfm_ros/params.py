@@ -372,6 +372,10 @@ class SceneFlowParams(Params):
                             'is fitted on (a fixed subset of the ids; 0: all)')
     softness: float = rule(0.1, _positive, 'nrsfm object frame: track weight 1 / (spread^2 + '
                            '(softness * median spread)^2)')
+    shrinkage: str = rule('jitter', _one_of('jitter', 'none'), 'nrsfm object frame: jitter '
+                          '(scale each point\'s flow toward zero by max(0, 1 - 6 sigma^2 / mean '
+                          '|d|^2 over its 16 nearest points), sigma the jitter measured over the '
+                          'window: pure jitter gives ~zero flow) or none (the raw difference)')
     stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')
     segments: int = rule(300, _at_least(1), 'msf: SLIC segments of the reference frame')
     sync_tolerance_s: float = rule(0.005, _non_negative, 'msf: image and depth stamps closer '

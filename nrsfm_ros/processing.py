@@ -146,7 +146,7 @@ def error_key(kind: str, err: MessageError) -> str:
 # optional ones checked when present.
 CLOUD_INPUTS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     'tracks': (('u', 'v', 'visibility', 'track_id'), ('rgb', 'occlusion')),
-    'points': (('x', 'y', 'z'), ('track_id', 'rgb')),
+    'points': (('x', 'y', 'z'), ('track_id', 'rgb', 'visibility')),
     'reference': (('x', 'y', 'z'), ('track_id',)),
 }
 # positions beyond this (pixels or metres) are not sensor data: such clouds are rejected
@@ -350,7 +350,8 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
 
 
 class ReconstructorProcessor(Processor):
-    """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id) + nrsfm/depth (32FC1 metres, NaN
+    """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id, visibility: the tracker's for that
+    track and frame, 0 where the frame's tracks lack it) + nrsfm/depth (32FC1 metres, NaN
     off the surface), one of each per tracks message (the first window's frames come out
     together once it is full; ``flush`` publishes whatever is pending at the end of a stream)."""
 
@@ -374,6 +375,7 @@ class ReconstructorProcessor(Processor):
         self.stream = make_stream(p if p.mode != 'hdmnet' else replace(p, mode='batch'))
         self._apply_intrinsics()
         self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
+        self._vis: dict[int, tuple[np.ndarray, np.ndarray]] = {}      # track ids, visibility
         self._rgb: dict[int, float] = {}
 
     def set_params(self, params: ReconstructorParams) -> None:
@@ -493,6 +495,7 @@ class ReconstructorProcessor(Processor):
         uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
         index = self.stream.frames_seen
         self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
+        self._vis[index] = (ids.copy(), vis)
         for i, c in zip(ids.tolist(), rgb.tolist()):   # a track keeps its first colour
             self._rgb.setdefault(i, c)
         return self._emit(self.stream.push(ids, uv, vis))
@@ -511,7 +514,9 @@ class ReconstructorProcessor(Processor):
             ids = sh.ids.astype(np.uint32)
             rgb = np.array([self._rgb.get(int(i), 0.0) for i in sh.ids], np.float32)
             cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb,
-                                'track_id': ids}, self.factory, stamp, frame)
+                                'track_id': ids,
+                                'visibility': self._visibility(sh.index, ids)},
+                               self.factory, stamp, frame)
             out.append((TOPICS['points'], PC2, cloud))
             if K is not None and self.params.publish_depth:
                 size = self.image_size or _size_from(uv_all)
@@ -519,6 +524,19 @@ class ReconstructorProcessor(Processor):
                 depth = depth_image(uv, X[:, 2], size)
                 out.append((TOPICS['nrsfm_depth'], IMAGE,
                             img_io.array_to_image(depth, '32FC1', self.factory, stamp, frame)))
+        return out
+
+    def _visibility(self, index: int, ids: np.ndarray) -> np.ndarray:
+        """The tracker's visibility of ``ids`` in frame ``index`` (0: not in its tracks)."""
+        tid, vis = self._vis.pop(index, (np.zeros(0, np.uint32), np.zeros(0)))
+        for k in [k for k in self._vis if k < index]:      # frames the stream never published
+            del self._vis[k]
+        out = np.zeros(ids.size, np.float32)
+        if tid.size:
+            order = np.argsort(tid, kind='stable')
+            k = order[np.searchsorted(tid, ids, sorter=order).clip(max=tid.size - 1)]
+            hit = tid[k] == ids
+            out[hit] = vis[k[hit]]
         return out
 
     def flush(self) -> list[Output]:
@@ -765,12 +783,17 @@ def transform_matrix(msg: Any) -> np.ndarray:
 
 
 class SceneFlowProcessor(Processor):
-    """scene_flow/points (x, y, z, vx, vy, vz in m/s, track_id) + arrow markers.
+    """scene_flow/points (x, y, z, vx, vy, vz in m/s, track_id, visibility) + arrow markers.
 
     ``method='nrsfm'``: from consecutive nrsfm/points clouds (matched by track id), the
     velocity in the previous camera's axes (core.sceneflow.definition); ``frame='object'``
     removes the camera's ego-motion estimated over the last ``window`` clouds
-    (core.sceneflow.nrsfm_flow.object_poses, warm-started from the previous window's weights).
+    (core.sceneflow.nrsfm_flow.object_poses, warm-started from the previous window's weights)
+    and, with ``shrinkage='jitter'``, scales the cloud's flow toward zero by the window's
+    measured jitter (core.sceneflow.nrsfm_flow.shrunk).  ``visibility``: the smaller of the
+    point's ``visibility`` in the two clouds (the tracker's, carried by nrsfm/points; 1 where a
+    cloud has no such field), 0 = occluded in either frame (the position is the reconstructor's
+    fill-in, its flow a guess); the first cloud's points get 0 and zero flow.
     ``method='msf'``: RGB-D MSF (core.sceneflow.msf) from camera/image_raw,
     camera/depth/image_raw and camera/camera_info, image and depth paired by stamp; the points
     are the surface pixels of the first frame (every ``stride``-th, track_id = y * width + x)
@@ -786,10 +809,18 @@ class SceneFlowProcessor(Processor):
 
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
-        self._prev: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._prev: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque()
+        self._times: deque[float] = deque()       # the history's stamps (s)
         self._weights: tuple[np.ndarray, np.ndarray] | None = None
+        self._last: tuple[float, float] | None = None   # shrinkage factor, jitter of the last
         self._reset_msf()
+
+    def status(self) -> dict[str, str]:
+        """nrsfm object frame with shrinkage: the last cloud's shrinkage factor and jitter."""
+        if self._last is None:
+            return {}
+        return {'shrinkage': f'{self._last[0]:.3f}', 'jitter': f'{self._last[1]:.5f}'}
 
     def _reset_msf(self) -> None:
         self._K: np.ndarray | None = None
@@ -804,6 +835,7 @@ class SceneFlowProcessor(Processor):
         if changed:
             self._prev = None
             self._history.clear()
+            self._times.clear()
             self._weights = None
             self._reset_msf()
 
@@ -884,8 +916,10 @@ class SceneFlowProcessor(Processor):
             return []
         X = pc2.read_xyz(msg, skip_nans=False)
         ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0]
+        vis = (np.clip(np.nan_to_num(pc2.read_fields(msg, ('visibility',), np.float64)[:, 0]),
+                       0.0, 1.0) if 'visibility' in pc2.field_names(msg) else np.ones(ids.size))
         ok = np.isfinite(X).all(axis=1)
-        X, ids = X[ok], ids[ok]
+        X, ids, vis = X[ok], ids[ok], vis[ok]
         stamp = stamp_ns(msg.header)
         prev = self._prev
         if np.unique(ids).size != ids.size:
@@ -895,15 +929,17 @@ class SceneFlowProcessor(Processor):
         if prev is None or stamp <= prev[0]:
             # first cloud (or time went backwards): zero flow, so every input has an output
             v = np.zeros_like(X)
-            pts, out_ids = X, ids
+            pts, out_ids, out_vis = X, ids, np.zeros(ids.size)
             self._history.clear()
+            self._times.clear()
             self._weights = None
         else:
             dt = (stamp - prev[0]) * 1e-9
             if p.frame == 'camera':
                 sf = scene_flow(prev[1], prev[2], X, ids, dt, frame='camera')
             else:
-                from .core.sceneflow.nrsfm_flow import motion_between, object_poses, pair_flow
+                from .core.sceneflow.nrsfm_flow import (motion_between, object_poses, pair_flow,
+                                                        shrunk)
                 window = [*self._history, (X, ids)]
                 R, t, self._weights = object_poses(
                     window, iterations=p.iterations if self._weights is None else
@@ -911,19 +947,27 @@ class SceneFlowProcessor(Processor):
                     return_weights=True, max_points=p.pose_points)
                 sf = pair_flow((prev[1], prev[2].astype(np.int64)), (X, ids.astype(np.int64)),
                                motion_between(R, t, len(window) - 2, len(window) - 1), dt)
+                if p.shrinkage == 'jitter':
+                    sf = shrunk(sf, window, R, t, dt, [*self._times, stamp * 1e-9])
+                    self._last = (sf.shrinkage, sf.jitter)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids
-        self._prev = (stamp, X, ids)
+            out_vis = np.minimum(_lookup(prev[2], prev[3], out_ids), _lookup(ids, vis, out_ids))
+        self._prev = (stamp, X, ids, vis)
         self._history.append((X, ids))
+        self._times.append(stamp * 1e-9)
         while len(self._history) > max(p.window, 2) - 1:
             self._history.popleft()
-        return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id))
+            self._times.popleft()
+        return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id), out_vis)
 
     def _outputs(self, pts: np.ndarray, v: np.ndarray, ids: np.ndarray, stamp: int,
-                 frame: str) -> list[Output]:
+                 frame: str, visibility: np.ndarray | None = None) -> list[Output]:
         pts32, v32 = pts.astype(np.float32), v.astype(np.float32)
+        vis = np.ones(len(ids), np.float32) if visibility is None else visibility
         cloud = pc2.to_msg({'x': pts32[:, 0], 'y': pts32[:, 1], 'z': pts32[:, 2],
                             'vx': v32[:, 0], 'vy': v32[:, 1], 'vz': v32[:, 2],
-                            'track_id': ids.astype(np.uint32)},
+                            'track_id': ids.astype(np.uint32),
+                            'visibility': np.asarray(vis, np.float32)},
                            self.factory, stamp, frame)
         return [(TOPICS['scene_flow'], PC2, cloud),
                 (TOPICS['markers'], 'visualization_msgs/msg/MarkerArray',
@@ -945,6 +989,12 @@ class SceneFlowProcessor(Processor):
                         color=f.make('std_msgs/msg/ColorRGBA', r=1.0, g=0.3, b=0.1, a=1.0),
                         points=points)
         return f.make('visualization_msgs/msg/MarkerArray', markers=[marker])
+
+
+def _lookup(ids: np.ndarray, values: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """values[k] where ids[k] == q for each q of ``query`` (every q is one of ``ids``)."""
+    order = np.argsort(ids, kind='stable')
+    return values[order[np.searchsorted(ids, query, sorter=order)]]
 
 
 def diagnostics_msg(factory: MsgFactory, node: str, stats: Stats, stamp: int,

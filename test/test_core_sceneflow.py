@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.sceneflow import camera_to_object, relative_motion, scene_flow
-from nrsfm_ros.core.sceneflow.nrsfm_flow import (motion_between, object_poses, sequence_flow,
-                                                 weighted_kabsch)
+from nrsfm_ros.core.sceneflow.nrsfm_flow import (jitter_variance, motion_between, object_poses,
+                                                 sequence_flow, shrink_factor, weighted_kabsch)
 from nrsfm_ros.evaluation import BagOutputs, read_outputs, scene_flow_errors
 from nrsfm_ros.io import pointcloud2 as pc2
 from nrsfm_ros.io.msgtypes import RosbagsFactory
@@ -31,7 +31,7 @@ def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
     return X @ T[:3, :3].T + T[:3, 3]
 
 
-def _scene(F: int = 12, seed: int = 0):
+def _scene(F: int = 12, seed: int = 0, omega: float = 0.6, amplitude: float = 0.15):
     """A mostly rigid body (400 points) with a flapping part (100 points) seen by a camera that
     orbits it: world shapes (F, P, 3), camera poses (F, 4, 4), camera-frame shapes."""
     rng = np.random.default_rng(seed)
@@ -40,7 +40,7 @@ def _scene(F: int = 12, seed: int = 0):
     Sw, P = [], []
     for f in range(F):
         flap = flap0.copy()
-        flap[:, 2] = 0.15 * np.sin(0.6 * f) * (flap0[:, 0] - 0.3)   # hinge at x = 0.3
+        flap[:, 2] = amplitude * np.sin(omega * f) * (flap0[:, 0] - 0.3)   # hinge x = 0.3
         Sw.append(np.r_[body, flap])
         P.append(_pose([0.02 * f, 0.05 * f, -0.01 * f], [0.01 * f, 0.0, 3.0 + 0.02 * f]))
     Sw, P = np.array(Sw), np.array(P)
@@ -124,7 +124,7 @@ def test_sequence_flow_is_the_flap_motion_in_the_earlier_camera():
         order = rng.permutation(keep)
         clouds.append((S[f, order], ids[order]))
     for window in (0, 5):
-        flows = sequence_flow(clouds, [0.1] * (F - 1), window=window)
+        flows = sequence_flow(clouds, [0.1] * (F - 1), window=window, shrinkage='none')
         assert len(flows) == F - 1
         for f, sf in enumerate(flows, start=1):
             true = (Sw[f, sf.ids] - Sw[f - 1, sf.ids]) @ P[f - 1, :3, :3].T / 0.1
@@ -132,7 +132,7 @@ def test_sequence_flow_is_the_flap_motion_in_the_earlier_camera():
             assert err < 0.05 * np.linalg.norm(true, axis=1).mean() + 1e-3, (window, f, err)
             np.testing.assert_allclose(sf.points, S[f, sf.ids])
     # camera frame: the raw difference
-    cam = sequence_flow(clouds, [0.1] * (F - 1), frame='camera')
+    cam = sequence_flow(clouds, [0.1] * (F - 1), frame='camera', shrinkage='none')
     np.testing.assert_allclose(cam[0].velocity, (S[1, cam[0].ids] - S[0, cam[0].ids]) / 0.1)
 
 
@@ -146,6 +146,107 @@ def test_rigid_object_and_moving_camera_has_zero_object_flow():
     np.testing.assert_allclose(sf.T_prev_cur, relative_motion(P, 3, 4), atol=1e-9)
 
 
+# ---------------------------------------------------------------- shrinkage toward zero
+def _flap(amplitude: float):
+    """_scene with a slower flap (period ~21 frames, as the synthetic flag), 16 frames."""
+    return _scene(F=16, omega=0.3, amplitude=amplitude)
+
+
+def _jittered(S: np.ndarray, sigma: float, seed: int = 3) -> list:
+    rng = np.random.default_rng(seed)
+    ids = np.arange(S.shape[1])
+    return [(S[f] + rng.normal(scale=sigma, size=S[f].shape), ids) for f in range(len(S))]
+
+
+def _rel(flows, Sw, P, first: int = 2) -> float:
+    """Mean relative EPE of sequence_flow results against the true object-frame flow (pairs
+    from ``first``: the causal estimator has no jitter estimate for the first pair)."""
+    r = []
+    for f, sf in enumerate(flows, start=1):
+        if f < first:
+            continue
+        true = (Sw[f, sf.ids] - Sw[f - 1, sf.ids]) @ P[f - 1, :3, :3].T / 0.1
+        r.append(np.linalg.norm(sf.velocity - true, axis=1).mean()
+                 / np.linalg.norm(true, axis=1).mean())
+    return float(np.mean(r))
+
+
+def _both(clouds, F):
+    dts = [0.1] * (F - 1)
+    return (sequence_flow(clouds, dts, window=5, shrinkage='none'),
+            sequence_flow(clouds, dts, window=5))
+
+
+def test_jitter_variance_and_shrink_factor_known_answers():
+    rng = np.random.default_rng(4)
+    F, N = 6, 3000
+    ids = np.arange(N)
+    R = np.tile(np.eye(3), (F, 1, 1))
+    t = np.zeros((F, 3))
+    tau = np.arange(F)[:, None, None]
+    smooth = rng.normal(size=(N, 3)) + 0.1 * tau * rng.normal(size=(N, 3)) \
+        + 0.02 * tau ** 2 * rng.normal(size=(N, 3))           # quadratic trajectories
+    clouds = [(smooth[f], ids) for f in range(F)]
+    assert jitter_variance(clouds, R, t) < 1e-20             # a quadratic is not jitter
+    noisy = [(X + rng.normal(scale=0.01, size=X.shape), i) for X, i in clouds]
+    assert jitter_variance(noisy, R, t) == pytest.approx(1e-4, rel=0.05)
+    # poses are undone first: the same clouds seen by a moving camera, the same variance
+    Rm = np.stack([Rotation.from_rotvec([0.1 * f, -0.05 * f, 0.02]).as_matrix() for f in range(F)])
+    tm = np.arange(F)[:, None] * [0.1, 0.0, 0.3]
+    moved = [(X @ Rm[f].T + tm[f], i) for f, (X, i) in enumerate(noisy)]
+    assert jitter_variance(moved, Rm, tm) == pytest.approx(jitter_variance(noisy, R, t))
+    assert jitter_variance(noisy[:2], R[:2], t[:2]) is None        # no residual from 2 clouds
+    d = rng.normal(size=(100, 3))
+    p = np.mean(np.sum(d ** 2, axis=1))
+    assert shrink_factor(d, 0.05) == pytest.approx(1 - 0.3 / p)
+    assert shrink_factor(d, 10.0) == 0.0 and shrink_factor(d, None) == 0.0
+    assert shrink_factor(d, 0.0) == 1.0
+    # per point: the power of its nearest points (two far-apart groups: moving and still)
+    X = np.r_[rng.normal(size=(50, 3)), 100 + rng.normal(size=(50, 3))]
+    d = np.r_[np.tile([1.0, 0.0, 0.0], (50, 1)), np.zeros((50, 3))]
+    a = shrink_factor(d, 0.01, X, neighbours=16)
+    np.testing.assert_allclose(a[:50], 1 - 0.06)
+    np.testing.assert_allclose(a[50:], 0.0)
+    assert np.all(shrink_factor(d, None, X) == 0)
+
+
+def test_pure_jitter_gives_near_zero_flow():
+    """A rigid body seen by an orbiting camera, each cloud jittered (2 mm): the true object
+    flow is zero; the raw difference is all jitter, the shrunk flow (near) zero."""
+    Sw, P, S = _flap(0.0)
+    raw, shr = _both(_jittered(S, 0.002), len(S))
+    v_raw = np.mean([np.linalg.norm(sf.velocity, axis=1).mean() for sf in raw[1:]])
+    v_shr = np.mean([np.linalg.norm(sf.velocity, axis=1).mean() for sf in shr[1:]])
+    assert v_raw > 0.03                                  # ~ sqrt(2 * 3) * 2 mm / 0.1 s
+    assert v_shr < 0.1 * v_raw, (v_shr, v_raw)              # measured 0.07
+    assert np.mean([sf.shrinkage for sf in shr]) < 0.1
+    assert np.nanmean([sf.jitter for sf in shr]) == pytest.approx(0.002, rel=0.3)
+    assert shr[0].shrinkage == 0 and np.all(shr[0].velocity == 0)   # 2 clouds: no estimate
+
+
+def test_jitter_as_large_as_the_motion_beats_zero_flow():
+    """The flap moves ~1-4 mm a frame, the clouds jitter by 1 mm (and the still body's jitter
+    is flow too): the raw difference is several times worse than zero flow (relative EPE 1.0),
+    the shrunk flow beats it (measured: raw 4.49, shrunk 0.79)."""
+    Sw, P, S = _flap(0.15)
+    raw, shr = (_rel(f, Sw, P) for f in _both(_jittered(S, 0.001), len(S)))
+    assert raw > 3.0, raw
+    assert shr < 0.9, shr
+
+
+def test_real_motion_with_small_jitter_is_recovered():
+    """The same motion with 0.1 mm jitter: the flap keeps its motion (the factor ~1 there)
+    while the still body's jitter is removed (measured: raw 0.45, shrunk 0.10)."""
+    Sw, P, S = _flap(0.15)
+    raw, shr = _both(_jittered(S, 0.0001), len(S))
+    flap = [np.linalg.norm(b.velocity[b.ids >= 400], axis=1).sum()
+            / np.linalg.norm(a.velocity[a.ids >= 400], axis=1).sum()
+            for a, b in zip(raw[1:], shr[1:])]
+    assert np.median(flap) > 0.95, flap
+    r_raw, r_shr = _rel(raw, Sw, P), _rel(shr, Sw, P)
+    assert r_shr < 0.15 and r_shr < 0.5 * r_raw, (r_shr, r_raw)
+
+
 @pytest.mark.parametrize('call, match', [
     (lambda X, i: scene_flow(X, i, X, i, 0.0), 'dt'),
     (lambda X, i: scene_flow(X, i, X, i, 0.1, frame='world'), 'frame'),
@@ -154,6 +255,10 @@ def test_rigid_object_and_moving_camera_has_zero_object_flow():
     (lambda X, i: object_poses([]), 'at least one'),
     (lambda X, i: object_poses([(X, i)], prior=(i, np.ones(3))), 'prior'),
     (lambda X, i: sequence_flow([(X, i), (X, i)], [0.1, 0.1]), 'dts'),
+    (lambda X, i: scene_flow(X, i, X, i, 0.1, shrinkage='wiener'), 'shrinkage'),
+    (lambda X, i: sequence_flow([(X, i), (X, i)], [0.1], shrinkage='x'), 'shrinkage'),
+    (lambda X, i: jitter_variance([(X, i)] * 3, np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)),
+                                  times=[0.0, 0.0, 1.0]), 'times'),
 ])
 def test_validation(call, match):
     X = np.random.default_rng(0).normal(size=(10, 3))
@@ -162,7 +267,8 @@ def test_validation(call, match):
 
 
 def test_params_validated():
-    for bad in ({'window': 1}, {'iterations': -1}, {'softness': 0.0}, {'warm_iterations': -1}):
+    for bad in ({'window': 1}, {'iterations': -1}, {'softness': 0.0}, {'warm_iterations': -1},
+                {'shrinkage': 'wiener'}):
         with pytest.raises(ValueError):
             SceneFlowParams().updated(bad)
 
@@ -208,7 +314,7 @@ def test_node_restarts_when_time_goes_backwards_and_on_param_change():
     Sw, P, S = _scene(F=6)
     ids = np.arange(S.shape[1])
     fac = RosbagsFactory()
-    proc = SceneFlowProcessor(fac)
+    proc = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none'))
     vs = []
     for f in (0, 1, 2, 1, 2):
         m = proc.on_points(_cloud_msg(fac, S[f], ids, 1e9 + f * 1e8))[0][2]
@@ -217,6 +323,75 @@ def test_node_restarts_when_time_goes_backwards_and_on_param_change():
     proc.set_params(SceneFlowParams(frame='camera'))
     m = proc.on_points(_cloud_msg(fac, S[3], ids, 1e9 + 3e8))[0][2]
     assert np.all(pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64) == 0)
+
+
+def test_node_shrinkage_and_visibility():
+    """shrinkage 'none' publishes the raw difference, 'jitter' (default) the shrunk flow
+    (zero for the first pair: no jitter estimate yet) and reports its factor on /diagnostics;
+    scene_flow/points carries visibility = the smaller of the point's in the two clouds (1
+    where the clouds have none, 0 on the first cloud)."""
+    Sw, P, S = _flap(0.15)
+    clouds = _jittered(S, 0.001)
+    fac = RosbagsFactory()
+    raw = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none'))
+    shr = SceneFlowProcessor(fac)
+    rng = np.random.default_rng(5)
+    vis = (rng.random((len(S), S.shape[1])) > 0.2).astype(np.float32)
+    for f, (X, ids) in enumerate(clouds):
+        X = X.astype(np.float32)
+        msg = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
+                          'track_id': ids.astype(np.uint32), 'visibility': vis[f]}, fac,
+                         int(1e9 + f * 1e8), 'camera')
+        m_raw, m_shr = raw.on_points(msg)[0][2], shr.on_points(msg)[0][2]
+        v_raw, v_shr = (pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64)
+                        for m in (m_raw, m_shr))
+        got = pc2.read_fields(m_shr, ('visibility', 'track_id'), np.float64)
+        want = np.zeros(len(ids)) if f == 0 else np.minimum(vis[f - 1], vis[f])
+        np.testing.assert_array_equal(got[:, 0], want[got[:, 1].astype(int)])
+        if f == 1:
+            assert np.all(v_shr == 0) and np.abs(v_raw).max() > 0
+        elif f > 1:
+            a = float(shr.status()['shrinkage'])
+            assert 0 < a < 1 and float(shr.status()['jitter']) > 0
+            # the still body (ids < 400) is mostly jitter: shrunk hard; the flap much less
+            body = np.abs(v_shr[:400]).sum() / np.abs(v_raw[:400]).sum()
+            flap = np.abs(v_shr[400:]).sum() / np.abs(v_raw[400:]).sum()
+            assert body < 0.5 * flap, (f, body, flap)
+    assert raw.status() == {}
+    # without a visibility field: 1 on every flow point
+    m = raw.on_points(_cloud_msg(fac, S[0], np.arange(S.shape[1]), 3e9))[0][2]
+    m = raw.on_points(_cloud_msg(fac, S[1], np.arange(S.shape[1]), 3.1e9))[0][2]
+    assert np.all(pc2.read_fields(m, ('visibility',), np.float64) == 1)
+
+
+def test_reconstructor_carries_the_tracker_visibility():
+    """nrsfm/points has the tracker's visibility of each track in that frame (0 where the
+    track is missing from the frame's tracks)."""
+    from nrsfm_ros.io.synth import dense_tracks
+    from nrsfm_ros.params import ReconstructorParams
+    from nrsfm_ros.processing import ReconstructorProcessor
+    d = dense_tracks('flag', frames=8, points=150)
+    F, N = d['V'].shape
+    rng = np.random.default_rng(6)
+    vis = np.where(rng.random((F, N)) > 0.3, 1.0, 0.25).astype(np.float32)
+    fac = RosbagsFactory()
+    rec = ReconstructorProcessor(fac, ReconstructorParams(mode='window', window=4))
+    out = []
+    for f in range(F):
+        u, v = d['W'][2 * f], d['W'][2 * f + 1]
+        keep = np.arange(N) != f                     # track f is missing from frame f
+        msg = pc2.to_msg({'u': u[keep].astype(np.float32), 'v': v[keep].astype(np.float32),
+                          'track_id': np.arange(N, dtype=np.uint32)[keep],
+                          'visibility': vis[f, keep]}, fac, int(1e9 + f * 1e8), 'camera')
+        out += rec.handle('tracks', msg)
+    out += rec.flush()
+    clouds = [m for t, _, m in out if t == 'nrsfm/points']
+    assert len(clouds) == F
+    for f, m in enumerate(clouds):
+        got = pc2.read_fields(m, ('track_id', 'visibility'), np.float64)
+        want = vis[f].copy()
+        want[f] = 0.0
+        np.testing.assert_array_equal(got[:, 1], want[got[:, 0].astype(int)])
 
 
 # ---------------------------------------------------------------- pipeline accuracy

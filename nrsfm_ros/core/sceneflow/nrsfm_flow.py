@@ -16,12 +16,28 @@ estimator) instead removes the rigid part of the deformation too: 0.58 (flag) / 
 relative EPE on perfect ground-truth shapes, against 0.60 / 0.05 for the weighted window.
 The flow of pair (a, b) is then ``T_a_b X_b - X_a`` with the estimated camera motion
 ``T_a_b`` (the earlier camera's axes), exactly as the synthetic ground truth.
+
+**Shrinkage toward zero** (``shrinkage='jitter'``, object frame): a reconstruction's
+frame-to-frame jitter differences into flow as large as the motion itself.  Over the window,
+every track seen in all its clouds has an object-frame trajectory ``Y_f = R_f^T (X_f - t_f)``;
+a quadratic in time per track and coordinate (linear on 3 clouds) is the motion, its pooled
+residual the jitter variance ``sigma^2`` per coordinate (:func:`jitter_variance`).  A
+displacement is the difference of two jittered positions, noise power ``6 sigma^2`` per point,
+so each point's flow is scaled by the positive-part James-Stein factor
+``alpha = max(0, 1 - 6 sigma^2 / mean |d|^2)`` (:func:`shrink_factor`; ``d`` the raw
+displacements of its 16 nearest points): pure jitter gives ``alpha`` ~ 0 (zero flow, the
+trivial baseline), a motion well above the jitter ``alpha`` ~ 1, and a moving part of a still
+surface keeps its motion.  With too few clouds for a residual (the first pair) the factor is
+0.  Nothing is tuned per case: ``sigma`` is measured on every cloud.  What it cannot see:
+reconstruction error that is as smooth in time as the motion (a wrong but steady deformation,
+a depth reflection) passes as motion; motion that changes faster than a quadratic over the
+window (a period under ~10 clouds) is partly taken for jitter.
 """
 from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -39,6 +55,11 @@ class SceneFlow:
     velocity: np.ndarray
     ids: np.ndarray
     T_prev_cur: np.ndarray
+    shrinkage: float = 1.0          # factor applied to the raw velocity (1: none)
+    jitter: float = float('nan')    # estimated jitter std per coordinate (cloud units)
+
+SHRINKAGE = ('jitter', 'none')
+NEIGHBOURS = 16      # points each shrinkage factor's signal power is pooled over
 
 
 def weighted_kabsch(A: np.ndarray, B: np.ndarray, w: np.ndarray | None = None
@@ -186,47 +207,135 @@ def pair_flow(prev: Cloud, cur: Cloud, T_a_b: np.ndarray, dt: float) -> SceneFlo
                      T_prev_cur=T_a_b)
 
 
+def jitter_variance(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray,
+                    times: Sequence[float] | None = None, min_points: int = 3
+                    ) -> float | None:
+    """Per-coordinate variance of the clouds' jitter about a smooth motion (module doc):
+    the pooled residual of a per-track quadratic in time (linear on 3 clouds) fitted to the
+    object-frame positions ``R_f^T (X_f - t_f)`` of the tracks seen in every cloud.
+    ``clouds`` checked (X, ids) with unique ids, poses from :func:`object_poses`, ``times``
+    (default 0, 1, ..) their time stamps.  None with fewer than 3 clouds or ``min_points``
+    common tracks."""
+    w = len(clouds)
+    if w < 3:
+        return None
+    common = clouds[0][1]
+    for _, i in clouds[1:]:
+        common = np.intersect1d(common, i)
+    n = common.size
+    if n < min_points:
+        return None
+    Y = np.empty((w, n, 3))
+    for f, (X, i) in enumerate(clouds):
+        order = np.argsort(i, kind='stable')
+        Y[f] = (X[order[np.searchsorted(i, common, sorter=order)]] - t[f]) @ R[f]
+    tau = np.arange(w, dtype=np.float64) if times is None else np.asarray(times, np.float64)
+    if tau.shape != (w,) or not np.all(np.isfinite(tau)) or np.unique(tau).size != w:
+        raise ValueError(f'times: expected {w} distinct finite stamps, got {tau}')
+    tau = (tau - tau[-1]) / max(float(np.ptp(tau)), 1e-300)
+    degree = 2 if w >= 4 else 1
+    A = np.vander(tau, degree + 1, increasing=True)
+    Q, _ = np.linalg.qr(A)
+    flat = Y.reshape(w, -1)
+    resid = flat - Q @ (Q.T @ flat)
+    return float((resid ** 2).sum() / ((w - degree - 1) * flat.shape[1]))
+
+
+def shrink_factor(displacement: np.ndarray, sigma2: float | None,
+                  points: np.ndarray | None = None, neighbours: int = NEIGHBOURS
+                  ) -> float | np.ndarray:
+    """Positive-part James-Stein factor ``max(0, 1 - 6 sigma2 / mean |d|^2)`` of raw
+    displacements ``d`` (N, 3) whose per-coordinate position jitter has variance ``sigma2``
+    (None: unknown -> 0, zero flow).  With ``points`` (N, 3): one factor per point, the mean
+    over its ``neighbours`` nearest points (itself included; all if fewer), so that a moving
+    part of a still surface keeps its motion."""
+    d2 = np.sum(np.asarray(displacement, np.float64) ** 2, axis=1)
+    if points is None:
+        if sigma2 is None or not d2.size or d2.mean() <= 0:
+            return 0.0
+        return float(max(0.0, 1.0 - 6.0 * sigma2 / d2.mean()))
+    if sigma2 is None or not d2.size:
+        return np.zeros(d2.size)
+    from scipy.spatial import cKDTree
+    k = min(max(int(neighbours), 1), d2.size)
+    _, nb = cKDTree(np.asarray(points, np.float64)).query(points, k)
+    power = d2[nb.reshape(d2.size, k)].mean(axis=1)
+    with np.errstate(divide='ignore'):
+        return np.where(power > 0, np.clip(1.0 - 6.0 * sigma2 / power, 0.0, 1.0), 0.0)
+
+
+def shrunk(sf: SceneFlow, clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, dt: float,
+           times: Sequence[float] | None = None, neighbours: int = NEIGHBOURS) -> SceneFlow:
+    """``sf`` (the flow of the last two of ``clouds``, poses R, t) scaled per point by
+    :func:`shrink_factor` of its displacements over ``neighbours`` nearest points and
+    :func:`jitter_variance` of the window; ``shrinkage`` the mean factor."""
+    s2 = jitter_variance(clouds, R, t, times)
+    a = shrink_factor(sf.velocity * dt, s2, sf.points, neighbours)
+    return replace(sf, velocity=sf.velocity * a[:, None],
+                   shrinkage=float(a.mean()) if a.size else 0.0,
+                   jitter=float('nan') if s2 is None else math.sqrt(s2))
+
+
+def _check_shrinkage(shrinkage: str, frame: str) -> None:
+    if shrinkage not in SHRINKAGE:
+        raise ValueError(f'shrinkage={shrinkage!r}: expected one of {list(SHRINKAGE)}')
+    if frame not in ('object', 'camera'):
+        raise ValueError(f"frame={frame!r}: expected 'object' or 'camera'")
+
+
 def scene_flow(prev_points: np.ndarray, prev_ids: np.ndarray, points: np.ndarray,
                ids: np.ndarray, dt: float, frame: str = 'object',
                history: Sequence[Cloud] = (), iterations: int = 8,
-               softness: float = 0.1) -> SceneFlow:
+               softness: float = 0.1, shrinkage: str = 'jitter') -> SceneFlow:
     """Velocity of every current point that also exists in the previous cloud (matched by id).
 
     ``frame='object'``: the ego-motion is estimated by :func:`object_poses` over ``history``
     (older clouds, oldest first), the previous and the current cloud; with no history and two
-    clouds only this is a weighted two-frame fit (weak: prefer a window)."""
-    if frame not in ('object', 'camera'):
-        raise ValueError(f"frame={frame!r}: expected 'object' or 'camera'")
+    clouds only this is a weighted two-frame fit (weak: prefer a window).  ``shrinkage``
+    'jitter' (object frame only): scaled toward zero by the window's jitter (module doc; the
+    clouds are taken ``dt`` apart); 'none': the raw difference."""
+    _check_shrinkage(shrinkage, frame)
     if not dt > 0:
         raise ValueError(f'dt: expected a positive time step, got {dt}')
     prev = _check_cloud(prev_points, prev_ids, 'prev_points')
     cur = _check_cloud(points, ids, 'points')
     T = np.eye(4)
     if frame == 'object':
-        window = [*history, prev, cur]
+        window = [*(_check_cloud(X, i, f'history[{k}]') for k, (X, i) in enumerate(history)),
+                  prev, cur]
         R, t = object_poses(window, iterations=iterations, softness=softness)
         T = motion_between(R, t, len(window) - 2, len(window) - 1)
+        sf = pair_flow(prev, cur, T, dt)
+        return shrunk(sf, window, R, t, dt) if shrinkage == 'jitter' else sf
     return pair_flow(prev, cur, T, dt)
 
 
 def sequence_flow(clouds: Sequence[Cloud], dts: Sequence[float], frame: str = 'object',
-                  window: int = 0, iterations: int = 8, softness: float = 0.1
-                  ) -> list[SceneFlow]:
+                  window: int = 0, iterations: int = 8, softness: float = 0.1,
+                  shrinkage: str = 'jitter') -> list[SceneFlow]:
     """Flow of every consecutive pair (clouds[k-1], clouds[k]), k = 1.. (len - 1 results;
-    ``dts[k-1]`` its time step).  ``window`` 0: one pose estimate over all clouds (offline);
-    > 1: causal, each pair from the ``window`` clouds ending at it (what the node does)."""
+    ``dts[k-1]`` its time step).  ``window`` 0: one pose estimate over all clouds (offline;
+    the jitter of ``shrinkage`` over the 5 clouds about each pair); > 1: causal, each pair
+    from the ``window`` clouds ending at it (what the node does)."""
+    _check_shrinkage(shrinkage, frame)
     checked = [_check_cloud(X, i, f'clouds[{k}]') for k, (X, i) in enumerate(clouds)]
     if len(dts) != max(len(checked) - 1, 0):
         raise ValueError(f'dts: expected {len(checked) - 1} time steps, got {len(dts)}')
     out = []
     if frame == 'object' and window == 0 and len(checked) >= 2:
         R, t = object_poses(checked, iterations=iterations, softness=softness)
+        times = np.r_[0.0, np.cumsum(dts)]
         for k in range(1, len(checked)):
-            out.append(pair_flow(checked[k - 1], checked[k], motion_between(R, t, k - 1, k),
-                             dts[k - 1]))
+            sf = pair_flow(checked[k - 1], checked[k], motion_between(R, t, k - 1, k),
+                           dts[k - 1])
+            if shrinkage == 'jitter':       # the 5 clouds about the pair (offline)
+                lo = min(max(0, k - 3), max(0, len(checked) - 5))
+                hi = min(lo + 5, len(checked))
+                sf = shrunk(sf, checked[lo:hi], R[lo:hi], t[lo:hi], dts[k - 1], times[lo:hi])
+            out.append(sf)
         return out
     for k in range(1, len(checked)):
         hist = checked[max(0, k + 1 - window):k - 1] if window > 1 else []
         out.append(scene_flow(*checked[k - 1], *checked[k], dts[k - 1], frame, hist,
-                              iterations, softness))
+                              iterations, softness, shrinkage))
     return out
