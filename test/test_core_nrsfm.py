@@ -482,3 +482,26 @@ def test_planar_rejects_a_curved_cap_that_looks_flat_over_a_small_camera_motion(
     assert unchecked.converged and unchecked.residual_px == res.residual_px
     sheet = generate(SynthConfig(surface='sheet', camera_motion_deg=30, frames=40, stride=3))
     assert reconstruct(sheet.W, np.maximum(sheet.V, 1e-3), method='planar').converged
+
+
+def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
+    """auto (the reconstructor's default): a rigid, non-planar body with tracking noise seen over
+    a small rotation: bmm's extra freedom fits no better than one rigid shape (its residual is
+    above rigid's) and its shapes are 100x worse, so auto takes rigid; a strongly deforming
+    rank-3 sequence keeps bmm (it explains the tracks exactly, rigid does not)."""
+    from nrsfm_ros.core.nrsfm.stream import BMM_RIGID_RATIO, auto_solve
+    rng = np.random.default_rng(0)
+    F, P = 40, 400
+    X = rng.normal(size=(3, P)) * [[1.0], [1.0], [0.6]]
+    ang = np.stack([np.linspace(0, np.radians(8), F), np.linspace(0, np.radians(20), F)], 1)
+    S = np.einsum('fij,jp->fpi', Rotation.from_euler('xy', ang).as_matrix(), X)
+    W = S[:, :, :2].transpose(0, 2, 1).reshape(2 * F, P) + 0.01 * rng.normal(size=(2 * F, P))
+    rig, bm = reconstruct(W, method='rigid'), reconstruct(W, method='bmm')
+    assert bm.residual_px > BMM_RIGID_RATIO * rig.residual_px
+    res = auto_solve(W, np.ones((F, P)))
+    assert res.method == 'rigid'
+    assert e3d_normalized(res.S, S) < 0.1 * e3d_normalized(bm.S, S)
+    W2, _, _ = low_rank_sequence(K=3, F=60, P=300)
+    res2 = auto_solve(W2, np.ones((60, 300)))
+    assert res2.method == 'bmm'
+    assert res2.residual_px < 1e-3 * reconstruct(W2, method='rigid').residual_px

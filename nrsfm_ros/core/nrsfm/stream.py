@@ -61,6 +61,11 @@ PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
+BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above which the rigid
+#   factorisation is taken.  Measured on ground-truth tracks of the 256x192 renders: the face
+#   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
+#   e3D 0.08-0.18 there against rigid's 0.025-0.067); the cap at 12 deg 0.24 (bmm 0.20, rigid
+#   0.27); the mocap sets of ../shared/data/nrsfm 0.00-0.26 (face 0.26, the rest <= 0.12).
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
@@ -91,15 +96,30 @@ class _Frame:
 def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
-        from .planar import planar
-        res = planar(W, V)
-        if res.converged:
-            return res
-        method = 'bmm'
+        return auto_solve(W, V)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'planar':          # chosen (by the user or by auto's first decision): the
         kw = {'rigid_check': False}  # stream never reads converged, skip its rigid solve
     return reconstruct(W, V, method=method, **kw)
+
+
+def auto_solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+    """``method: auto``: the deformation model chosen from the tracks, among three nested in
+    freedom: ``planar`` where its tests pass (a flat rest shape explaining the tracks at least
+    as well as one rigid shape), else ``bmm``, unless ``bmm`` explains less than
+    ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the rigid factorisation leaves:
+    its per-frame shapes then fit what the rigid shape cannot by depths the camera motion does
+    not observe (or its fill of hidden tracks failed), and the rigid factorisation is taken."""
+    from .bmm import bmm
+    from .planar import planar, rigid_residual, safe_rigid
+    rig = safe_rigid(W, V)
+    res = planar(W, V, rigid_check=rig)
+    if res.converged:
+        return res
+    res = bmm(W, V)
+    if rig is not None and res.residual_px > BMM_RIGID_RATIO * rigid_residual(rig):
+        return rig
+    return res
 
 
 class StreamNRSfM:
@@ -303,8 +323,8 @@ class StreamNRSfM:
             # auto decides once, on the measured tracks: the corrected ones re-tested could flip
             # a flat-at-rest surface to bmm (sheet 60 deg amplitude 2: rest ratio 0.077 -> 0.085
             # against 0.08, e3D 0.10 -> 0.25)
-            method = weak.method if self.method == 'auto' and weak.method in ('planar', 'bmm') \
-                else self.method
+            method = weak.method if self.method == 'auto' and \
+                weak.method in ('planar', 'bmm', 'rigid') else self.method
 
             def solve_fixed(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
                 return self._solver(W, V, method, self.rank)
