@@ -383,3 +383,43 @@ def test_fine_levels_finish_a_pose_on_a_partial_cluttered_target():
     assert rotation_error_deg(T[:3, :3], R) < 0.5
     assert np.allclose(T[:3, 3], [0.2, -0.1, 0.05], atol=0.005)
     assert converged and it < 45
+
+
+def _bumpy_cap(n: int, rng) -> np.ndarray:
+    """The front half of an ellipsoid with three smooth radial bumps (like the corpus' z-buffer
+    view of a blob): a smooth shape whose rotation only its bumps pin down."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 2] = np.abs(d[:, 2])
+    C = np.array([[0.3, 0.2, 0.9], [-0.5, 0.4, 0.7], [0.2, -0.6, 0.7]])
+    C /= np.linalg.norm(C, axis=1, keepdims=True)
+    r = 1 + (np.array([0.3, 0.2, 0.25]) * np.exp(-(1 - d @ C.T) / 0.25)).sum(1)
+    return 0.4 * d * r[:, None] * [1.0, 0.8, 0.7]
+
+
+def test_fine_levels_answer_does_not_depend_on_the_source_frame():
+    """Regression (issue 15): the corpus' hard cases blob 2, sheet saddle and view of blob 1
+    ended 1.35, 1.03 and 2.19 deg off reported converged.  The fine passes voxelised each cloud
+    in its own frame; grids at another relative rotation cut the noisy surface differently, so
+    the optimum moved with the frame the source came in and the coarse levels pulled a good
+    start away.  Here, started at the true pose of a bumpy cap with 30% missing and 50%
+    outliers: that answer was 1.69 deg off and moved 0.36 / 0.73 deg when the same source was
+    given in two other frames; with one grid in the target frame it is 0.61 deg off and the
+    same in every frame."""
+    from nrsfm_ros.core.registration.globalsearch import density_inliers
+    from nrsfm_ros.core.registration.refine import fine_levels
+    rng = np.random.default_rng(0)
+    R = Rotation.random(random_state=rng).as_matrix()
+    src, tgt = _hard_pair(lambda g: _bumpy_cap(12000, g), R, rng)
+    tgt = tgt[density_inliers(tgt)]
+    T0 = np.eye(4)
+    T0[:3, :3] = R
+    T0[:3, 3] = [0.2, -0.1, 0.05]
+    T, _, converged = fine_levels(src, tgt, T0, 0.01)
+    assert converged and rotation_error_deg(T[:3, :3], R) < 1.0
+    for rotvec in ([0.0, 0.0, 0.6], [1.0, -2.0, 0.5]):
+        Q = np.eye(4)
+        Q[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+        Tq = fine_levels(src @ Q[:3, :3].T, tgt, T0 @ np.linalg.inv(Q), 0.01)[0] @ Q
+        assert rotation_error_deg(Tq[:3, :3], T[:3, :3]) < 0.01
+        assert np.allclose(Tq[:3, 3], T[:3, 3], atol=1e-5)

@@ -26,9 +26,12 @@ def estimate_normals(X: np.ndarray, k: int = 10, tree: cKDTree | None = None,
     return np.linalg.eigh(cov)[1][:, :, 0]
 
 
-def voxel_downsample(X: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroid of the points in each occupied cell of a grid with edge ``voxel``."""
-    ijk = np.floor((X - X.min(0)) / voxel).astype(np.int64)
+def voxel_downsample(X: np.ndarray, voxel: float, origin: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """Centroid of the points in each occupied cell of a grid with edge ``voxel`` and a corner
+    at ``origin`` (default: the points' lower bound)."""
+    ijk = np.floor((X - (X.min(0) if origin is None else origin)) / voxel).astype(np.int64)
+    ijk -= ijk.min(0)
     dims = ijk.max(0) + 1
     _, inv, cnt = np.unique((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2],
                             return_inverse=True, return_counts=True)
@@ -142,7 +145,13 @@ def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: floa
     """Robust symmetric point-to-plane refinement from ``T`` near the answer: (T, iterations,
     converged).
 
-    Both sets are reduced to voxel-grid centroids of edge ``voxel``; each Gauss-Newton step
+    Both sets are reduced to the centroids of one voxel grid of edge ``voxel`` in the target
+    frame, the source moved by ``T`` first: grids of the two sets in their own frames cut a
+    noisy surface differently at every relative rotation (a cell that catches a sliver of the
+    noise band has its centroid off the surface), a bias that depends on the pose; on the
+    corpus' z-buffer view of blob 1 (noise 0.005, started at the true pose) 4-2-1 x 1% grids
+    in the two frames drifted 0.6 deg on clean data and 1.4 deg with 30% missing, one grid
+    0.13 / 0.16 deg.  Each Gauss-Newton step
     pairs every moved source point with its nearest target point (target normal) *and* every
     target point with its nearest moved source point (source normal), pairs further apart than
     3 ``voxel`` dropped, each weighted by Geman-McClure of its plane residual with ``scale``
@@ -154,13 +163,16 @@ def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: floa
     (``fine_levels``) on the corpus' hard case (30% missing, 50% outliers; bench seeds) against
     the trimmed coarse-to-fine ICP it replaces there: scan monkey 1.40 -> 0.45 deg, blob 3
     1.16 -> 0.56, scan bunny 0.53 -> 0.14."""
-    src = voxel_downsample(source, voxel)
-    dst = voxel_downsample(target, voxel)
+    T0 = T
+    origin = target.min(0)
+    src = voxel_downsample(apply(T0, source), voxel, origin)   # in the target frame
+    dst = voxel_downsample(target, voxel, origin)
     tt, ts = cKDTree(dst), cKDTree(src)
     nt = estimate_normals(dst, k=10, tree=tt)
     ns = estimate_normals(src, k=10, tree=ts)
     gate, s2 = 3.0 * voxel, scale * scale
     it, converged = 0, False
+    T = np.eye(4)                                  # the step from T0, source points moved by it
     for it in range(1, iterations + 1):
         R, t = T[:3, :3], T[:3, 3]
         moved = apply(T, src)
@@ -186,7 +198,7 @@ def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: floa
         if np.abs(x[:3]).max() < tolerance and np.abs(x[3:]).max() < 2e-2 * voxel:
             converged = True
             break
-    return T, it, converged
+    return T @ T0, it, converged
 
 
 SCALE = 0.25          # fine_levels: Geman-McClure scale, x the cell edge
