@@ -9,10 +9,11 @@ with and without the occluder, at 320x240 and 640x480.
 (``nrsfm-ros synth --camera-motion 30``, 60 frames), runs ``process`` (tracker ->
 reconstructor -> scene_flow, nrsfm_ros.pipeline.process_bag) and scores with
 ``evaluation.scene_flow_errors`` (what ``nrsfm-ros evaluate`` and the demo print: relative EPE in
-the object frame, mean over frames 1..59): the published scene_flow/points; zero flow; the
-reconstructor's clouds through the old two-frame Kabsch fit and with the *true* ego-motion
+the object frame, mean over frames 1..59): the published scene_flow/points (shrinkage: jitter);
+zero flow; the reconstructor's clouds without the shrinkage (raw), through the old two-frame
+Kabsch fit and with the *true* ego-motion
 removed (what the reconstruction allows at best); the ground-truth shapes through the node's
-estimator (its own floor) and through the two-frame fit.
+estimator (its own floor), without the shrinkage and through the two-frame fit.
 
 Flow is scored from the first frame to every later one (what ``nrsfm-ros scene-flow`` writes),
 per surface pixel visible in the first frame, against ``io.synth_flow.dense_scene_flow``
@@ -134,14 +135,17 @@ def run_mono(surface: str, size: tuple[int, int], frames: int = 60) -> list[dict
                     stages=('tracker', 'reconstructor', 'scene_flow'))
         seconds = time.perf_counter() - t0
         out = read_outputs(Path(tmp) / 'out', seq)
-    two = SceneFlowParams(window=2, iterations=0, warm_iterations=0)
+    two = SceneFlowParams(window=2, iterations=0, warm_iterations=0, shrinkage='none')
+    raw = SceneFlowParams(shrinkage='none')
     gt = {f: (seq.S[f], seq.track_ids) for f in range(seq.S.shape[0])}
     st = seq.stamps_ns
     cases = [('pipeline scene_flow/points', out.flows),
              ('zero flow', {f: (0 * v, i) for f, (v, i) in out.flows.items()}),
+             ('recon clouds, no shrinkage (raw)', _node_flows(out.clouds, st, raw)),
              ('recon clouds, two-frame Kabsch (old)', _node_flows(out.clouds, st, two)),
              ('recon clouds, true ego-motion', _true_ego(out.clouds, seq)),
              ('GT shapes, node estimator (floor)', _node_flows(gt, st)),
+             ('GT shapes, no shrinkage (raw)', _node_flows(gt, st, raw)),
              ('GT shapes, two-frame Kabsch (old)', _node_flows(gt, st, two))]
     rows = []
     for name, flows in cases:

@@ -208,20 +208,23 @@ def pair_flow(prev: Cloud, cur: Cloud, T_a_b: np.ndarray, dt: float) -> SceneFlo
 
 
 def jitter_variance(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray,
-                    times: Sequence[float] | None = None, min_points: int = 3
-                    ) -> float | None:
+                    times: Sequence[float] | None = None, min_points: int = 3,
+                    max_points: int = 2000) -> float | None:
     """Per-coordinate variance of the clouds' jitter about a smooth motion (module doc):
     the pooled residual of a per-track quadratic in time (linear on 3 clouds) fitted to the
     object-frame positions ``R_f^T (X_f - t_f)`` of the tracks seen in every cloud.
     ``clouds`` checked (X, ids) with unique ids, poses from :func:`object_poses`, ``times``
-    (default 0, 1, ..) their time stamps.  None with fewer than 3 clouds or ``min_points``
-    common tracks."""
+    (default 0, 1, ..) their time stamps; on at most ``max_points`` of the common tracks (an
+    even subset of the ids; 0: all).  None with fewer than 3 clouds or ``min_points`` common
+    tracks."""
     w = len(clouds)
     if w < 3:
         return None
     common = clouds[0][1]
     for _, i in clouds[1:]:
         common = np.intersect1d(common, i)
+    if common.size > max_points > 0:          # an even subset of the ids: plenty of samples
+        common = common[::-(-common.size // max_points)]
     n = common.size
     if n < min_points:
         return None
