@@ -225,3 +225,64 @@ def test_training_smoke_few_steps_exports_a_matching_onnx(tmp_path):
     assert T.isometry_loss(bumpy, k) > 20 * T.isometry_loss(g, k) + 1e-9
     sil = T.soft_silhouette(g)[0].numpy()
     assert sil[T.SIL // 2, T.SIL // 2] > 0.9 and sil[0, 0] < 0.05
+
+
+def test_reconstructor_node_mode_hdmnet_over_rclpy(rclpy_context):
+    """The live node in mode hdmnet: camera_info and images in over real rclpy -> one
+    nrsfm/points and one nrsfm/depth per image, same stamps, the surface where it is (metres)."""
+    import time
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+    from nrsfm_ros.io.msgtypes import RclpyFactory, stamp_ns
+    from nrsfm_ros.nodes.common import RELIABLE, SENSOR, ProcessorNode
+    img, mask, Xc, K = _render_full()
+    node = ProcessorNode('reconstructor', ReconstructorProcessor,
+                         [('points', 'sensor_msgs/msg/PointCloud2'),
+                          ('nrsfm_depth', 'sensor_msgs/msg/Image')], context=rclpy_context)
+    node.set_parameters([Parameter('mode', value='hdmnet'), Parameter('reliable', value=True)])
+    assert node.processor.params.mode == 'hdmnet'
+    node.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
+    node.subscribe('image', 'sensor_msgs/msg/Image', RELIABLE)
+    probe = Node('probe_hdmnet', context=rclpy_context)
+    pub_info = probe.create_publisher(CameraInfo, 'camera/camera_info', 10)
+    pub = probe.create_publisher(Image, 'camera/image_raw', 10)
+    clouds, depths = [], []
+    probe.create_subscription(PointCloud2, 'nrsfm/points', clouds.append, 10)
+    probe.create_subscription(Image, 'nrsfm/depth', depths.append, 10)
+    fac = RclpyFactory()
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(probe)
+    try:
+        end = time.monotonic() + 10
+        while (pub.get_subscription_count() < 1 or pub_info.get_subscription_count() < 1
+               or probe.count_publishers('nrsfm/depth') < 1) and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for f in range(3):
+            pub_info.publish(img_io.make_camera_info(K, 256, 192, fac, 10 ** 9 + f, 'cam'))
+            for _ in range(5):
+                ex.spin_once(timeout_sec=0.02)
+            pub.publish(img_io.array_to_image(img[..., ::-1].copy(), 'bgr8', fac, 10 ** 9 + f,
+                                              'cam'))
+            end = time.monotonic() + 10
+            while len(depths) <= f and time.monotonic() < end:
+                ex.spin_once(timeout_sec=0.05)
+        end = time.monotonic() + 5
+        while len(clouds) < 3 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+    stamps = [10 ** 9 + f for f in range(3)]
+    assert [stamp_ns(m.header) for m in clouds] == stamps
+    assert [stamp_ns(m.header) for m in depths] == stamps
+    xyz = pc2.read_fields(clouds[-1], ('x', 'y', 'z'), np.float64)
+    err = np.sqrt(np.mean(np.sum((xyz - Xc.reshape(-1, 3)) ** 2, axis=1)))
+    assert err < 0.1 * float(Xc[..., 2].mean()), err
+    depth = img_io.image_to_array(depths[-1])
+    assert depth.shape == (192, 256) and (np.isfinite(depth) & mask).sum() > 0.7 * mask.sum()
