@@ -4,7 +4,7 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--live] [--json out.json]
+        [--true-cameras] [--live] [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -18,7 +18,10 @@ frames) of
 - frames in / out (the fewest clouds of any pipeline row) and the ratio of the best pipeline row
   and of ``stream(GT)`` to the static oracle;
 - why a case may be hard: the camera's rotation range (deg) over the sequence, which is what
-  makes depth observable to an orthographic factorisation;
+  makes depth observable to an orthographic factorisation; with ``--true-cameras``, the
+  observability bound: the ground-truth tracks reconstructed with the TRUE camera rotations and
+  scales given (one rigid shape, and ``bmm``'s nuclear-norm shapes), so no camera error is
+  left, only what the camera motion reveals of the deformation (:func:`true_camera_bound`);
 - on occluder cases, per pipeline row, the error on the points behind the occluder and on the
   visible points of the same frames (:func:`occluded_split`; issue 13's target: occluded <=
   1.2x visible), printed as a second table.
@@ -91,8 +94,28 @@ def occluded_split(clouds: dict, seq) -> tuple[float, float]:
             float(np.sqrt(np.mean(np.concatenate(vis_e) ** 2))))
 
 
+def true_camera_bound(seq) -> tuple[float, float]:
+    """e3D of the ground-truth tracks reconstructed with the true cameras given: (one rigid
+    shape, ``bmm``'s nuclear-norm shapes).  Orthographic with each frame's true scale (focal /
+    mean depth): what is left is what the camera motion does not reveal."""
+    from nrsfm_ros.core.nrsfm.bmm import bmm_shapes
+    from nrsfm_ros.core.nrsfm.factorization import _centre, _solve_rigid_shape
+    V = np.maximum(seq.V, 1e-3)
+    F, P = V.shape
+    Wc, _ = _centre(seq.W, V)
+    scale = seq.K[0, 0] / seq.S[:, :, 2].mean(1)
+    Wn = (Wc.reshape(F, 2, P) / scale[:, None, None]).reshape(2 * F, P)
+    R = seq.T_camera_world[:, :3, :3]
+    S0 = _solve_rigid_shape(Wn, V, R[:, :2], np.ones(F))
+    S, *_ = bmm_shapes(Wn, V, R[:, :2], 0.01, 300, init=np.broadcast_to(S0, (F, 3, P)).copy())
+
+    def e(S_cam: np.ndarray) -> float:
+        return score(shapes_as_clouds(S_cam, seq.track_ids), seq).summary()['e3d']
+    return e(np.einsum('fij,jp->fpi', R, S0)), e(np.einsum('fij,fjp->fpi', R, S))
+
+
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
-             work: Path) -> dict:
+             work: Path, true_cameras: bool = False) -> dict:
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
                  'amplitude': cfg.amplitude, 'occluder': bool(getattr(cfg, 'occluder', False)),
@@ -109,6 +132,8 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
             row[f'gt_{m}'] = float('nan')
             row[f'gt_{m}_error'] = str(err)
         row[f'gt_{m}_s'] = time.perf_counter() - t
+    if true_cameras:
+        row['truecam_rigid'], row['truecam_bmm'] = true_camera_bound(seq)
     st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K), seq).summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
@@ -162,6 +187,9 @@ def main() -> None:
     p.add_argument('--modes', default='window,online,batch')
     p.add_argument('--gt-methods', default='rigid,lowrank,planar,bmm')
     p.add_argument('--live', action='store_true', help='also run the live graph over DDS')
+    p.add_argument('--true-cameras', action='store_true',
+                   help='also the observability bound: the ground-truth tracks with the true '
+                   'cameras given (rigid shape, bmm shapes)')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
     a = p.parse_args()
     w, h = (int(v) for v in a.size.split('x'))
@@ -180,7 +208,8 @@ def main() -> None:
                         if 'occluder' not in fields:
                             continue
                         kw['occluder'] = True
-                    row = run_case(SynthConfig(**kw), modes, gt_methods, a.live, work)
+                    row = run_case(SynthConfig(**kw), modes, gt_methods, a.live, work,
+                                   a.true_cameras)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)
@@ -188,7 +217,9 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
     pipe_cols = modes + (['live'] if a.live else [])
     header = (['surface', 'cam deg', 'amp', 'occl', 'cam range', 'static', 'flat']
-              + [f'{m}(GT)' for m in gt_methods] + ['stream(GT)']
+              + [f'{m}(GT)' for m in gt_methods]
+              + (['rigid(true cams)', 'bmm(true cams)'] if a.true_cameras else [])
+              + ['stream(GT)']
               + [f'{m}' for m in pipe_cols]
               + ['frames in/out', 'pipe/static', 'stream(GT)/static'])
 
@@ -197,7 +228,9 @@ def main() -> None:
     table(header, [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
                     'yes' if r['occluder'] else 'no', f"{r['camera_range_deg']:.0f}",
                     f4(r['static']), f4(r['flat'])]
-                   + [f4(r[f'gt_{m}']) for m in gt_methods] + [f4(r['stream_gt'])]
+                   + [f4(r[f'gt_{m}']) for m in gt_methods]
+                   + ([f4(r['truecam_rigid']), f4(r['truecam_bmm'])] if a.true_cameras else [])
+                   + [f4(r['stream_gt'])]
                    + [f4(r[m]) for m in pipe_cols]
                    + [f"{r['frames_in']}/{r['frames_out']}", f"{r['ratio_pipeline']:.2f}",
                       f"{r['ratio_stream_gt']:.2f}"] for r in rows])
