@@ -789,11 +789,12 @@ class SceneFlowProcessor(Processor):
     velocity in the previous camera's axes (core.sceneflow.definition); ``frame='object'``
     removes the camera's ego-motion estimated over the last ``window`` clouds
     (core.sceneflow.nrsfm_flow.object_poses, warm-started from the previous window's weights)
-    and, with ``shrinkage='jitter'``, scales the cloud's flow toward zero by the window's
-    measured jitter (core.sceneflow.nrsfm_flow.shrunk).  ``visibility``: the smaller of the
-    point's ``visibility`` in the two clouds (the tracker's, carried by nrsfm/points; 1 where a
-    cloud has no such field), 0 = occluded in either frame (the position is the reconstructor's
-    fill-in, its flow a guess); the first cloud's points get 0 and zero flow.
+    and, with ``shrinkage='jitter'``, scales each point's flow toward zero by the window's
+    measured jitter and by its visibility (core.sceneflow.nrsfm_flow.shrunk). ``visibility``:
+    the smaller of the point's ``visibility`` in the two clouds (the tracker's, carried by
+    nrsfm/points; 1 where a cloud has no such field), 0 = occluded in either frame (the
+    position is the reconstructor's fill-in, its flow a guess); the first cloud's points get 0
+    and zero flow.
     ``method='msf'``: RGB-D MSF (core.sceneflow.msf) from camera/image_raw,
     camera/depth/image_raw and camera/camera_info, image and depth paired by stamp; the points
     are the surface pixels of the first frame (every ``stride``-th, track_id = y * width + x)
@@ -947,11 +948,12 @@ class SceneFlowProcessor(Processor):
                     return_weights=True, max_points=p.pose_points)
                 sf = pair_flow((prev[1], prev[2].astype(np.int64)), (X, ids.astype(np.int64)),
                                motion_between(R, t, len(window) - 2, len(window) - 1), dt)
-                if p.shrinkage == 'jitter':
-                    sf = shrunk(sf, window, R, t, dt, [*self._times, stamp * 1e-9])
-                    self._last = (sf.shrinkage, sf.jitter)
+            out_vis = np.minimum(_lookup(prev[2], prev[3], sf.ids), _lookup(ids, vis, sf.ids))
+            if p.frame == 'object' and p.shrinkage == 'jitter':
+                sf = shrunk(sf, window, R, t, dt, [*self._times, stamp * 1e-9],
+                            visibility=out_vis)
+                self._last = (sf.shrinkage, sf.jitter)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids
-            out_vis = np.minimum(_lookup(prev[2], prev[3], out_ids), _lookup(ids, vis, out_ids))
         self._prev = (stamp, X, ids, vis)
         self._history.append((X, ids))
         self._times.append(stamp * 1e-9)

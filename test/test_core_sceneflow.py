@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.sceneflow import camera_to_object, relative_motion, scene_flow
 from nrsfm_ros.core.sceneflow.nrsfm_flow import (jitter_variance, motion_between, object_poses,
-                                                 sequence_flow, shrink_factor, weighted_kabsch)
+                                                 sequence_flow, shrink_factor, shrunk,
+                                                 weighted_kabsch)
 from nrsfm_ros.evaluation import BagOutputs, read_outputs, scene_flow_errors
 from nrsfm_ros.io import pointcloud2 as pc2
 from nrsfm_ros.io.msgtypes import RosbagsFactory
@@ -259,6 +260,9 @@ def test_real_motion_with_small_jitter_is_recovered():
     (lambda X, i: sequence_flow([(X, i), (X, i)], [0.1], shrinkage='x'), 'shrinkage'),
     (lambda X, i: jitter_variance([(X, i)] * 3, np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)),
                                   times=[0.0, 0.0, 1.0]), 'times'),
+    (lambda X, i: shrunk(scene_flow(X, i, X, i, 0.1, shrinkage='none'), [(X, i)] * 3,
+                         np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)), 0.1,
+                         visibility=np.full(10, 2.0)), 'visibility'),
 ])
 def test_validation(call, match):
     X = np.random.default_rng(0).normal(size=(10, 3))
@@ -348,6 +352,9 @@ def test_node_shrinkage_and_visibility():
         got = pc2.read_fields(m_shr, ('visibility', 'track_id'), np.float64)
         want = np.zeros(len(ids)) if f == 0 else np.minimum(vis[f - 1], vis[f])
         np.testing.assert_array_equal(got[:, 0], want[got[:, 1].astype(int)])
+        occluded = want[got[:, 1].astype(int)] == 0
+        assert occluded.any() and np.all(v_shr[occluded] == 0)     # a fill-in: no flow
+        assert f == 0 or np.abs(v_raw[occluded]).max() > 0
         if f == 1:
             assert np.all(v_shr == 0) and np.abs(v_raw).max() > 0
         elif f > 1:

@@ -18,20 +18,23 @@ The flow of pair (a, b) is then ``T_a_b X_b - X_a`` with the estimated camera mo
 ``T_a_b`` (the earlier camera's axes), exactly as the synthetic ground truth.
 
 **Shrinkage toward zero** (``shrinkage='jitter'``, object frame): a reconstruction's
-frame-to-frame jitter differences into flow as large as the motion itself.  Over the window,
+frame-to-frame jitter differences into flow as large as the motion itself. Over the window,
 every track seen in all its clouds has an object-frame trajectory ``Y_f = R_f^T (X_f - t_f)``;
 a quadratic in time per track and coordinate (linear on 3 clouds) is the motion, its pooled
-residual the jitter variance ``sigma^2`` per coordinate (:func:`jitter_variance`).  A
+residual the jitter variance ``sigma^2`` per coordinate (:func:`jitter_variance`). A
 displacement is the difference of two jittered positions, noise power ``6 sigma^2`` per point,
-so each point's flow is scaled by the positive-part James-Stein factor
-``alpha = max(0, 1 - 6 sigma^2 / mean |d|^2)`` (:func:`shrink_factor`; ``d`` the raw
-displacements of its 16 nearest points): pure jitter gives ``alpha`` ~ 0 (zero flow, the
-trivial baseline), a motion well above the jitter ``alpha`` ~ 1, and a moving part of a still
-surface keeps its motion.  With too few clouds for a residual (the first pair) the factor is
-0.  Nothing is tuned per case: ``sigma`` is measured on every cloud.  What it cannot see:
-reconstruction error that is as smooth in time as the motion (a wrong but steady deformation,
-a depth reflection) passes as motion; motion that changes faster than a quadratic over the
-window (a period under ~10 clouds) is partly taken for jitter.
+so each point's flow is scaled by the positive-part James-Stein factor ``alpha = max(0, 1 - 6
+sigma^2 / mean |d|^2)`` (:func:`shrink_factor`; ``d`` the raw displacements of its 16 nearest
+points): pure jitter gives ``alpha`` ~ 0 (zero flow, the trivial baseline), a motion well above
+the jitter ``alpha`` ~ 1, and a moving part of a still surface keeps its motion. Where the
+clouds carry the tracker's visibility the factor is also multiplied by it (the smaller of the
+two clouds'): an occluded point's position is the reconstructor's fill-in, not a measurement,
+and its flow is worse than none (occluder flag 30 deg: 1.43 on the occluded points, 0.87 on the
+visible). With too few clouds for a residual (the first pair) the factor is 0. Nothing is tuned
+per case: ``sigma`` is measured on every cloud. What it cannot see: reconstruction error that
+is as smooth in time as the motion (a wrong but steady deformation, a depth reflection) passes
+as motion; motion that changes faster than a quadratic over the window (a period under ~10
+clouds) is partly taken for jitter.
 """
 from __future__ import annotations
 
@@ -268,12 +271,21 @@ def shrink_factor(displacement: np.ndarray, sigma2: float | None,
 
 
 def shrunk(sf: SceneFlow, clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, dt: float,
-           times: Sequence[float] | None = None, neighbours: int = NEIGHBOURS) -> SceneFlow:
+           times: Sequence[float] | None = None, neighbours: int = NEIGHBOURS,
+           visibility: np.ndarray | None = None) -> SceneFlow:
     """``sf`` (the flow of the last two of ``clouds``, poses R, t) scaled per point by
     :func:`shrink_factor` of its displacements over ``neighbours`` nearest points and
-    :func:`jitter_variance` of the window; ``shrinkage`` the mean factor."""
+    :func:`jitter_variance` of the window, times ``visibility`` (N,) in [0, 1] where given (the
+    smaller of the point's in the two clouds: an occluded point's position is a fill-in, not a
+    measurement); ``shrinkage`` the mean factor."""
     s2 = jitter_variance(clouds, R, t, times)
     a = shrink_factor(sf.velocity * dt, s2, sf.points, neighbours)
+    if visibility is not None:
+        w = np.asarray(visibility, np.float64)
+        if w.shape != a.shape or not np.all((w >= 0) & (w <= 1)):
+            raise ValueError(f'visibility: expected {a.shape[0]} values in [0, 1], got shape '
+                             f'{w.shape}')
+        a = a * w
     return replace(sf, velocity=sf.velocity * a[:, None],
                    shrinkage=float(a.mean()) if a.size else 0.0,
                    jitter=float('nan') if s2 is None else math.sqrt(s2))
