@@ -375,7 +375,8 @@ class SceneFlowParams(Params):
     shrinkage: str = rule('jitter', _one_of('jitter', 'none'), 'nrsfm object frame: jitter '
                           '(scale each point\'s flow toward zero by max(0, 1 - 6 sigma^2 / mean '
                           '|d|^2 over its 16 nearest points), sigma the jitter measured over the '
-                          'window: pure jitter gives ~zero flow) or none (the raw difference)')
+                          'window: pure jitter gives ~zero flow; times the point\'s visibility: '
+                          'an occluded fill-in gets none) or none (the raw difference)')
     stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')
     segments: int = rule(300, _at_least(1), 'msf: SLIC segments of the reference frame')
     sync_tolerance_s: float = rule(0.005, _non_negative, 'msf: image and depth stamps closer '
