@@ -743,14 +743,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def format_evaluation(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> list[str]:
     """The printed report of ``evaluate`` (numbers as in the demo summary)."""
-    from .processing import TOPICS
+    from .demo import OUTPUT_TOPICS
     F = r['frames_in']
     outs = r['outputs']
     lines = [f'{bag} against {gt}: {F} ground-truth frames, {seq.S.shape[1]} tracks',
              f'frames in: {F}; frames out: ' + ', '.join(
-                 f'{t} {outs.get(t, 0)}' for t in (TOPICS['points'], TOPICS['nrsfm_depth'],
-                                                  TOPICS['aligned'], TOPICS['transform'],
-                                                  TOPICS['scene_flow'])),
+                 f'{t} {outs.get(t, 0)}' for t in OUTPUT_TOPICS),
              f"nrsfm/points: {r['frames_scored']} of {F} frames scored; "
              f"{r['points_matched_per_frame']:.0f} of {r['points_per_frame']} points per frame "
              'matched to ground truth',

@@ -135,13 +135,15 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
     return summary
 
 
+# every output topic of the node graph, in pipeline order: the summary and `evaluate` count each
+OUTPUT_TOPICS = tuple(TOPICS[k] for k in ('tracks', 'points', 'nrsfm_depth', 'aligned',
+                                          'transform', 'displacement', 'camera_pose',
+                                          'scene_flow', 'markers', 'flow'))
+
+
 def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str:
     rows = [('frames in (camera/image_raw)', str(s['frames_in']))]
-    for topic in (TOPICS['tracks'], TOPICS['points'], TOPICS['nrsfm_depth'], TOPICS['aligned'],
-                  TOPICS['transform'], TOPICS['displacement'], TOPICS['camera_pose'],
-                  TOPICS['scene_flow'],
-                  TOPICS['markers'],
-                  TOPICS['flow']):
+    for topic in OUTPUT_TOPICS:
         rows.append((f'frames out ({topic})', str(s['outputs'].get(topic, 0))))
     if 'e3d_B_frame_scaled' in s:
         rows.append(('points per frame (matched to ground truth)',

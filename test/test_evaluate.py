@@ -68,6 +68,10 @@ def test_prints_the_benchmark_numbers(run, capsys):
         assert line in out
     assert 'static oracle' in out and 'flat plane' in out
     assert f'{FRAMES} of {FRAMES} frames scored' in out
+    # every output topic of the graph is counted, as in the demo summary
+    from nrsfm_ros.demo import OUTPUT_TOPICS
+    counted = out.split('frames out: ')[1].split('\n')[0]
+    assert [c.rsplit(' ', 1)[0] for c in counted.split(', ')] == list(OUTPUT_TOPICS)
     # registration and scene flow: the same numbers as the demo summary of the same bag
     demo = summarise(root / 'out', seq, root / 'render')
     for key in ('e3d_B_frame_scaled', 'registration_rmse_m',
