@@ -744,6 +744,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def format_evaluation(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> list[str]:
     """The printed report of ``evaluate`` (numbers as in the demo summary)."""
     from .demo import OUTPUT_TOPICS
+    from .processing import TOPICS
     F = r['frames_in']
     outs = r['outputs']
     lines = [f'{bag} against {gt}: {F} ground-truth frames, {seq.S.shape[1]} tracks',
