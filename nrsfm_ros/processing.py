@@ -676,7 +676,8 @@ class RegistrarProcessor(Processor):
         thr = resolve_threshold(self.reference, p.inlier_threshold)
         target = self.reference[ri]
         kw = dict(depth_weight=p.depth_weight, max_iterations=p.max_iterations,
-                  tolerance=p.tolerance, max_points=p.max_points, tree=self._tree)
+                  tolerance=p.tolerance, max_points=p.max_points, tree=self._tree,
+                  score=False)    # rigid_result below scores the whole moved cloud
         sources = {False: src, True: mirror_along_rays(src)}
         # the mirror changes only the depth: nothing to choose with depth_weight 0
         check = p.try_reflection and p.depth_weight > 0 and self._checks % 10 == 0

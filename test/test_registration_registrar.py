@@ -132,6 +132,31 @@ def test_ray_pose_trusts_the_rays_over_the_depth():
     np.testing.assert_allclose(m[:, 2], 2 * src[:, 2].mean() - src[:, 2], atol=1e-9)
 
 
+def test_ray_pose_score_false_skips_only_the_fitness_query():
+    """score=False (the registrar's call: it scores the whole moved cloud itself) gives the same
+    pose, cost and aligned points without querying the reference tree; score=True reports the
+    fitness of the same pose."""
+    from nrsfm_ros.core.registration.rays import ray_pose
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng(4)
+    ref = np.c_[rng.uniform(-0.4, 0.4, (600, 2)), rng.uniform(-0.15, 0.15, 600)] + [0, 0, 4]
+    Tinv = np.linalg.inv(_rigid(5.0, [0.3, 1, 0.1], [0.1, 0.0, 0.2]))
+    src = ref @ Tinv[:3, :3].T + Tinv[:3, 3] + rng.normal(0, 0.002, ref.shape)
+
+    class NoQuery(cKDTree):
+        def query(self, *a, **k):
+            raise AssertionError('score=False queried the tree')
+
+    full, cost = ray_pose(src, ref, threshold=0.05, tree=cKDTree(ref))
+    fast, fast_cost = ray_pose(src, ref, threshold=0.05, tree=NoQuery(ref), score=False)
+    np.testing.assert_array_equal(fast.T_target_source, full.T_target_source)
+    np.testing.assert_array_equal(fast.aligned, full.aligned)
+    assert fast_cost == cost and fast.iterations == full.iterations
+    assert fast.converged == full.converged
+    assert np.isnan(fast.fitness) and (fast.correspondences == -1).all()
+    assert full.fitness > 0.99
+
+
 @pytest.mark.parametrize('kw, match', [
     ({'depth_weight': 1.5}, r'depth_weight=1\.5: must be in \[0, 1\]'),
     ({'max_points': 3}, r'max_points=3'),
