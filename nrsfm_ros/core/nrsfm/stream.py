@@ -61,6 +61,7 @@ PROJECTIONS = ('perspective', 'weak')
 REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tracks are new
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
+BATCH_MAX_TRACKS = 10000  # batch solves run on at most this many spread tracks, extended to all
 BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above which the rigid
 #   factorisation is taken.  Measured on ground-truth tracks of the 256x192 renders: the face
 #   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
@@ -94,6 +95,13 @@ class _Frame:
 
 
 def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
+    """A batch solve with ``method``; over ``BATCH_MAX_TRACKS`` tracks on a spread subset,
+    extended to every track (core/nrsfm/extend.py)."""
+    from .extend import subset_solve
+    return subset_solve(lambda W, V: _solve_all(W, V, method, rank), W, V, BATCH_MAX_TRACKS)
+
+
+def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
         return auto_solve(W, V)
