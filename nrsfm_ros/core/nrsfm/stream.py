@@ -113,11 +113,11 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMRes
 
 def auto_solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
     """``method: auto``: the deformation model chosen from the tracks, among three nested in
-    freedom: ``planar`` where its tests pass (a flat rest shape explaining the tracks at least
-    as well as one rigid shape), else ``bmm``, unless ``bmm`` explains less than
-    ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the rigid factorisation leaves:
-    its per-frame shapes then fit what the rigid shape cannot by depths the camera motion does
-    not observe (or its fill of hidden tracks failed), and the rigid factorisation is taken."""
+    freedom: ``planar`` where its tests pass (a flat rest shape whose reprojection residual is
+    at most ``PLANAR_RIGID_RATIO`` x one rigid shape's), else ``bmm``, unless ``bmm`` explains
+    less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the rigid factorisation
+    leaves: its per-frame shapes then fit what the rigid shape cannot by depths the camera
+    motion does not observe (or its fill of hidden tracks failed), and rigid is taken."""
     from .bmm import bmm
     from .planar import planar, rigid_residual, safe_rigid
     rig = safe_rigid(W, V)
