@@ -30,7 +30,6 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import spsolve
 
 
 # ------------------------------------------------------------------ input helpers
@@ -67,6 +66,19 @@ def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     z = depth.astype(np.float32)
     return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+
+
+def highpass(gray: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """gray minus its Gaussian-weighted local mean over the ``valid`` pixels (normalised
+    convolution, so that the background does not leak in), 0 outside ``valid``: a structure
+    image that slow shading changes leave alone.  ``sigma`` 0: gray unchanged."""
+    if sigma <= 0:
+        return np.asarray(gray, np.float32)
+    m = np.asarray(valid, np.float32)
+    g = np.where(valid, gray, 0).astype(np.float32)
+    mean = cv2.GaussianBlur(g, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(m, (0, 0), sigma),
+                                                           1e-3)
+    return np.where(valid, g - mean, 0).astype(np.float32)
 
 
 def _check_K(K: np.ndarray) -> np.ndarray:
@@ -194,18 +206,26 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
 
 
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N, C) float64 of img (H, W, C) float32 at (u, v) (cv2.remap, with the
-    points laid out in rows of 4096: remap's sides are limited to 32767)."""
-    n, row = u.size, 4096
-    pad = (-n) % row
-    mu = np.concatenate([u, np.zeros(pad)]).astype(np.float32).reshape(-1, row)
-    mv = np.concatenate([v, np.zeros(pad)]).astype(np.float32).reshape(-1, row)
-    out = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(-1, img.shape[2])[:n].astype(np.float64)
+    """Bilinear samples (N, C) float64 of img (H, W, C) at (u, v), clamped to the image (the
+    border replicated).  Exact weights: cv2.remap quantises them to 1/32 px, which is 0.1-0.6 mm
+    of a point at 4 m, more than the sub-millimetre flow this is for."""
+    H, W, C = img.shape
+    u = np.clip(u, 0, W - 1)
+    v = np.clip(v, 0, H - 1)
+    x0 = np.minimum(u.astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(v.astype(np.int64), max(H - 2, 0))
+    a = (u - x0)[:, None]
+    b = (v - y0)[:, None]
+    flat = img.reshape(-1, C)
+    i = y0 * W + x0
+    dx, dy = int(W > 1), W * int(H > 1)
+    top = flat[i] * (1 - a) + flat[i + dx] * a
+    bottom = flat[i + dy] * (1 - a) + flat[i + dy + dx] * a
+    return top * (1 - b) + bottom * b
 
 
 def _block_pcg(Hm: sp.csr_matrix, b: np.ndarray, blocks: np.ndarray, iterations: int = 40,
-               tol: float = 1e-6) -> np.ndarray:
+               tol: float = 1e-8) -> np.ndarray:
     """Solve Hm x = b (symmetric positive definite) by conjugate gradients preconditioned
     with the inverses of the 6x6 diagonal blocks (a Gauss-Newton step needs no exact solve)."""
     Minv = np.linalg.inv(blocks)
@@ -250,7 +270,10 @@ class MSFConfig:
     global_levels: int = 0           # the coarsest ones solve one motion increment for all
     iterations: tuple[int, ...] = (4, 3, 3)   # Gauss-Newton steps per level, coarse to fine
     photometric_weight: float = 1.0
-    photometric_sigma: float = 4.0   # intensity units
+    photometric_sigma: float = 2.0   # intensity units (of the high-passed image)
+    highpass: float = 3.0            # px: the photometric terms compare I - its local mean over
+                                     # the pixels with depth (Gaussian sigma; 0: raw intensity),
+                                     # which removes the shading a deforming surface changes
     depth_weight: float = 1.0
     depth_sigma: float = 0.005       # metres
     max_depth_residual: float = 0.1  # m: projective ICP pairs further apart are outliers
@@ -259,16 +282,26 @@ class MSFConfig:
     huber: float = 1.0               # robust threshold on the normalised residuals
     damping: float = 1e-3            # Levenberg-Marquardt damping (relative to diag)
     reselect_fraction: float = 0.5   # new reference when less of it stays consistent
+    # per-pixel refinement of the segments' flow at full resolution (0 iterations: off; needs
+    # the photometric term): every first-frame pixel's 3-D point in frame c, Gauss-Newton on
+    # photometric + depth-along-the-ray residuals aggregated over a Gaussian window
+    refine_iterations: int = 4
+    refine_window: float = 2.0       # px: Gaussian sigma of the window
+    refine_prior: float = 0.1        # m: sigma of the prior towards the segment's rigid motion
 
     def check(self) -> None:
+        for name in ('refine_iterations',):
+            if getattr(self, name) < 0:
+                raise ValueError(f'{name}={getattr(self, name)}: expected >= 0')
         for name in ('segments', 'solve_width', 'levels'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name}={getattr(self, name)}: expected >= 1')
         for name in ('compactness', 'slic_depth_scale', 'photometric_sigma', 'depth_sigma',
-                     'max_depth_residual', 'smooth_depth_edge', 'huber'):
+                     'max_depth_residual', 'smooth_depth_edge', 'huber', 'refine_window',
+                     'refine_prior'):
             if not getattr(self, name) > 0:
                 raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
-        for name in ('photometric_weight', 'depth_weight', 'smoothness', 'damping'):
+        for name in ('photometric_weight', 'depth_weight', 'smoothness', 'damping', 'highpass'):
             if not getattr(self, name) >= 0:
                 raise ValueError(f'{name}={getattr(self, name)}: expected >= 0')
         if self.photometric_weight == 0 and self.depth_weight == 0:
@@ -280,6 +313,7 @@ class MSFConfig:
 
 
 ICP_CONFIG = MSFConfig(photometric_weight=0.0, smoothness=0.0)   # the per-segment ICP baseline
+# (the per-pixel refinement needs the photometric term: with photometric_weight 0 it is off)
 
 
 @dataclass
@@ -291,19 +325,21 @@ class _Level:
     N: np.ndarray        # (h, w, 3) float32 normals (NaN: unknown)
 
 
-def _pyramid(gray: np.ndarray, depth: np.ndarray, K: np.ndarray, first: int, n: int
-             ) -> list[_Level]:
-    """Levels first .. first+n-1 (level l: every 2^l-th pixel after blurring, K / 2^l)."""
+def _pyramid(gray: np.ndarray, depth: np.ndarray, K: np.ndarray, first: int, n: int,
+             hp_sigma: float = 0.0) -> list[_Level]:
+    """Levels first .. first+n-1 (level l: every 2^l-th pixel after blurring, K / 2^l); each
+    level's photometric image is its :func:`highpass` (``hp_sigma`` pixels of that level)."""
     out = []
     g, z = gray, depth
     for lev in range(first + n):
         if lev >= first:
             Kl = K.copy()
             Kl[:2] /= 2 ** lev
-            gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-            gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+            h = highpass(g, np.isfinite(z), hp_sigma)
+            gx = cv2.Sobel(h, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+            gy = cv2.Sobel(h, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
             V = back_project(z, Kl)
-            out.append(_Level(Kl, np.dstack([g, gx, gy]), V, _normals(V)))
+            out.append(_Level(Kl, np.dstack([h, gx, gy]), V, _normals(V)))
         g = cv2.GaussianBlur(g, (5, 5), 1.0)[::2, ::2].copy()
         z = z[::2, ::2].copy()
     return out[::-1]   # coarse first
@@ -331,7 +367,9 @@ class _Ref:
     pairs: np.ndarray                     # (E, 2)
     pair_w: np.ndarray                    # (E,)
     pair_pts: np.ndarray                  # (E, 3, 3): 3 points per pair (reference frame)
-    level_pix: list = field(default_factory=list)   # per level: (X (N,3), I (N,), seg (N,), A)
+    hp: np.ndarray                        # (H, W) the photometric image (highpass)
+    # per level: (X (N,3), I (N,), seg (N,), A, photometric ok (N,): away from the image border)
+    level_pix: list = field(default_factory=list)
     index: int = 0
 
 
@@ -358,6 +396,8 @@ class MSF:
         self._X0: np.ndarray | None = None        # (H, W, 3) first-frame points
         self._Y_in_ref: np.ndarray | None = None  # (H, W, 3)
         self._seg_of0: np.ndarray | None = None   # (H, W) active-ref segment of each pixel
+        # first-frame pixels with depth: flat indices, points (N, 3), photometric values (N,)
+        self._pix0: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.reselections: list[int] = []
         self._frame = -1
 
@@ -376,11 +416,16 @@ class MSF:
             self._X0 = self._ref.X.copy()
             self._Y_in_ref = self._X0.copy()
             self._seg_of0 = self._ref.labels.copy()
+            idx = np.flatnonzero(np.isfinite(self._X0).all(-1))
+            self._pix0 = (idx, self._X0.reshape(-1, 3)[idx].astype(np.float64),
+                          self._ref.hp.ravel()[idx].astype(np.float64))
             return None
         if gray.shape != self._ref.labels.shape:
             raise ValueError(f'image: size {gray.shape} differs from the reference '
                              f'{self._ref.labels.shape}')
-        levels = _pyramid(gray, z, self.K, self._first_level(gray.shape[1]), self.cfg.levels)
+        hp = highpass(gray, np.isfinite(z), self.cfg.highpass)
+        levels = _pyramid(gray, z, self.K, self._first_level(gray.shape[1]), self.cfg.levels,
+                          self.cfg.highpass)
         consistent = self._solve(levels)
         # first-frame pixels -> this frame, through the active reference's segment motions
         seg = self._seg_of0
@@ -388,6 +433,8 @@ class MSF:
         Y = np.full(self._X0.shape, np.nan, np.float32)
         s = seg[ok]
         Y[ok] = np.einsum('nij,nj->ni', self._R[s], self._Y_in_ref[ok]) + self._t[s]
+        if self.cfg.refine_iterations > 0 and self.cfg.photometric_weight > 0:
+            Y = self._refine(Y, hp, z)
         flow = Y - self._X0
         valid = np.isfinite(flow).all(-1)
         reselect = consistent < self.cfg.reselect_fraction
@@ -397,12 +444,18 @@ class MSF:
                         seconds=time.perf_counter() - t0)
 
     # ---------------------------------------------------------------- internals
+    def _margin(self) -> float:
+        """Full-resolution pixels from the image border where the photometric image is not
+        compared: the high-pass's local mean there depends on what lies beyond the border."""
+        return float(np.ceil(2 * self.cfg.highpass)) if self.cfg.highpass > 0 else 0.0
+
     def _first_level(self, width: int) -> int:
         return max(0, int(round(np.log2(max(width / self.cfg.solve_width, 1.0)))))
 
     def _set_reference(self, gray: np.ndarray, z: np.ndarray) -> None:
         c = self.cfg
         labels = slic(gray, z, c.segments, c.compactness, c.slic_depth_scale)
+        hp = highpass(gray, np.isfinite(z), c.highpass)
         X = back_project(z, self.K)
         S = int(labels.max()) + 1
         pairs, blen = segment_graph(labels)
@@ -420,17 +473,21 @@ class MSF:
         pts = np.stack([a, b, mid + off], 1) if len(pairs) else np.empty((0, 3, 3))
         dz = np.abs(a[:, 2] - b[:, 2])
         w = 1.0 / (1.0 + (dz / c.smooth_depth_edge) ** 2)
-        ref = _Ref(labels, X, S, pairs, w, pts, index=self._frame)
+        ref = _Ref(labels, X, S, pairs, w, pts, hp, index=self._frame)
         lev_first = self._first_level(gray.shape[1])
-        for L in _pyramid(gray, z, self.K, lev_first, c.levels):
+        for L in _pyramid(gray, z, self.K, lev_first, c.levels, c.highpass):
             lev = int(round(np.log2(self.K[0, 0] / L.K[0, 0])))
             sl = labels[::2 ** lev, ::2 ** lev]
             m = (sl >= 0) & np.isfinite(L.V[..., 2])
             segp = sl[m].astype(np.int64)
             A = sp.csr_matrix((np.ones(segp.size), (segp, np.arange(segp.size))),
                               shape=(S, segp.size))
+            hl, wl = sl.shape
+            mg = self._margin()                  # level pixels (the high-pass is per level)
+            yy, xx = np.nonzero(m)
+            pok = (xx >= mg) & (xx <= wl - 1 - mg) & (yy >= mg) & (yy <= hl - 1 - mg)
             ref.level_pix.append((L.V[m].astype(np.float64), L.img[..., 0][m].astype(np.float64),
-                                  segp, A))
+                                  segp, A, pok))
         self._ref = ref
         self._R = np.repeat(np.eye(3)[None], S, axis=0)
         self._t = np.zeros((S, 3))
@@ -440,17 +497,18 @@ class MSF:
         its = list(c.iterations) + [c.iterations[-1]] * max(0, len(levels) - len(c.iterations))
         consistent = 0.0
         for li, L in enumerate(levels):
-            X, I0, seg, A = self._ref.level_pix[li]
+            X, I0, seg, A, pok = self._ref.level_pix[li]
             tau = c.max_depth_residual * (2.0 ** (len(levels) - 1 - li)) ** 0.5
             common = li < c.global_levels
             for _ in range(its[li]):
-                consistent = self._gn_step(L, X, I0, seg, A, tau, common=common)
+                consistent = self._gn_step(L, X, I0, seg, A, pok, tau, common=common)
             if its[li] == 0:
-                consistent = self._gn_step(L, X, I0, seg, A, tau, update=False)
+                consistent = self._gn_step(L, X, I0, seg, A, pok, tau, update=False)
         return consistent
 
     def _gn_step(self, L: _Level, X: np.ndarray, I0: np.ndarray, seg: np.ndarray,
-                 A: sp.csr_matrix, tau: float, update: bool = True, common: bool = False
+                 A: sp.csr_matrix, pok: np.ndarray, tau: float, update: bool = True,
+                 common: bool = False
                  ) -> float:
         """One damped Gauss-Newton step of every segment's pose (``common``: one increment
         shared by all, left-multiplied); returns the fraction of depth-consistent pixels."""
@@ -483,8 +541,10 @@ class MSF:
             Ad = A[:, np.nonzero(okD)[0]]
             Hs += Ad @ (wt[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36))
             bs += Ad @ (wt[:, None] * J * r[:, None])
-        if c.photometric_weight > 0 and inside.any():
-            idx = np.nonzero(inside)[0]
+        mg = self._margin()
+        okI = inside & pok & (u >= mg) & (u <= w - 1 - mg) & (v >= mg) & (v <= h - 1 - mg)
+        if c.photometric_weight > 0 and okI.any():
+            idx = np.nonzero(okI)[0]
             smp = _bilinear(L.img, u[idx], v[idx])
             r = (smp[:, 0] - I0[idx]) / c.photometric_sigma
             Yi, zi = Y[idx], z[idx]
@@ -515,6 +575,7 @@ class MSF:
         floor = 1e-6 + 1e-3 * np.median(diag[diag > 0]) if (diag > 0).any() else 1.0
         Hd = Hs + (c.damping * diag[:, :, None] * np.eye(6) + floor * np.eye(6))
         rows.append(ii.ravel()), cols.append(jj.ravel()), vals.append(Hd.ravel())
+        blocks = Hd.copy()                                # the preconditioner's 6x6 blocks
         b = bs.copy()
         P = self._ref.pairs
         if c.smoothness > 0 and len(P):
@@ -546,6 +607,8 @@ class MSF:
             gb = wp[:, None] * np.einsum('eki,ek->ei', Jb, rr)
             np.add.at(b, pa, ga)
             np.add.at(b, pb, gb)
+            np.add.at(blocks, pa, Haa)
+            np.add.at(blocks, pb, Hbb)
             o6 = np.arange(6)
             for A_, B_, M in ((pa, pa, Haa), (pb, pb, Hbb), (pa, pb, Hab),
                               (pb, pa, np.transpose(Hab, (0, 2, 1)))):
@@ -556,12 +619,94 @@ class MSF:
                 vals.append(M.ravel())
         Hm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                            shape=(6 * S, 6 * S))
-        delta = -spsolve(Hm.tocsc(), b.ravel()).reshape(S, 6)
+        delta = -_block_pcg(Hm, b.ravel(), blocks).reshape(S, 6)
         delta[~np.isfinite(delta).all(1)] = 0.0
         Rd = _exp_so3(delta[:, 3:])
         self._R = Rd @ self._R
         self._t = np.einsum('sij,sj->si', Rd, self._t) + delta[:, :3]
         return consistent
+
+    def _refine(self, Y: np.ndarray, hp: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Per-pixel refinement of Y (H, W, 3), the first-frame pixels' points in this frame
+        predicted by their segments' motions.  Unknown: each pixel's displacement D = Y - X0.
+        Residuals: photometric (hp at pi(Y) - hp0) and depth along the ray (Y_z - z(pi(Y))),
+        Huber-weighted; their normal equations, linearised at each pixel's own D, are averaged
+        over a Gaussian window (Lucas-Kanade in 3-D: a locally constant displacement), plus a
+        weak prior towards the rigid prediction, which is all that is left where the pixel is
+        out of the image or behind a nearer surface (the rigid prediction's depth test)."""
+        c = self.cfg
+        H, W = z.shape
+        idx, X, I0 = self._pix0
+        Yr = Y.reshape(-1, 3)[idx].astype(np.float64)
+        ok = np.isfinite(Yr).all(1)
+        if not ok.any():
+            return Y
+        idx, X, I0, Yr = idx[ok], X[ok], I0[ok], Yr[ok]
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        known = np.isfinite(z)
+        zf = np.where(known, z, 0).astype(np.float32)
+        nodepth = cv2.dilate((~known).astype(np.uint8), np.ones((3, 3), np.uint8))
+
+        def sobel(a: np.ndarray, dx: int, dy: int) -> np.ndarray:
+            return cv2.Sobel(a, cv2.CV_32F, dx, dy, ksize=3, scale=1 / 8)
+        img = np.dstack([hp, sobel(hp, 1, 0), sobel(hp, 0, 1), zf, sobel(zf, 1, 0),
+                         sobel(zf, 0, 1), nodepth.astype(np.float32)])
+
+        def project(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            iz = 1.0 / np.maximum(P[:, 2], 1e-6)
+            u, v = fx * P[:, 0] * iz + cx, fy * P[:, 1] * iz + cy
+            inside = (P[:, 2] > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+            return u, v, iz, inside
+        u, v, _, vis = project(Yr)
+        iu = np.clip(np.rint(np.where(vis, u, 0)), 0, W - 1).astype(np.int64)
+        iv = np.clip(np.rint(np.where(vis, v, 0)), 0, H - 1).astype(np.int64)
+        vis &= ~(zf[iv, iu] < Yr[:, 2] - c.max_depth_residual) | ~known[iv, iu]
+        mg = self._margin()
+        px, py = idx % W, idx // W
+        pok = (px >= mg) & (px <= W - 1 - mg) & (py >= mg) & (py <= H - 1 - mg)
+        wp = 1.0 / c.refine_prior ** 2
+        Dr = Yr - X
+        D = Dr.copy()
+        sI, sD = c.photometric_sigma, c.depth_sigma
+        tri = np.triu_indices(3)
+        buf = np.zeros((H * W, 9), np.float32)
+        for _ in range(c.refine_iterations):
+            P = X + D
+            u, v, iz, inside = project(P)
+            inside &= vis
+            smp = _bilinear(img, u, v)
+            xz, yz = P[:, 0] * iz, P[:, 1] * iz
+            gxf, gyf = smp[:, 1] * fx * iz, smp[:, 2] * fy * iz
+            JI = np.stack([gxf, gyf, -(gxf * xz + gyf * yz)], 1) / sI
+            rI = (smp[:, 0] - I0) / sI
+            dxf, dyf = smp[:, 4] * fx * iz, smp[:, 5] * fy * iz
+            JD = np.stack([-dxf, -dyf, 1.0 + dxf * xz + dyf * yz], 1) / sD
+            rD = (P[:, 2] - smp[:, 3]) / sD
+            okI = inside & pok & (u >= mg) & (u <= W - 1 - mg) & (v >= mg) & (v <= H - 1 - mg)
+            wI = c.photometric_weight * okI * np.minimum(1.0, c.huber / np.maximum(
+                np.abs(rI), 1e-12))
+            wD = c.depth_weight * (inside & (smp[:, 6] < 1e-3)
+                                   & (np.abs(rD) * sD < c.max_depth_residual)) \
+                * np.minimum(1.0, c.huber / np.maximum(np.abs(rD), 1e-12))
+            tI = wI * (np.einsum('ni,ni->n', JI, D) - rI)
+            tD = wD * (np.einsum('ni,ni->n', JD, D) - rD)
+            buf[idx, :6] = (wI[:, None] * JI[:, tri[0]] * JI[:, tri[1]]
+                            + wD[:, None] * JD[:, tri[0]] * JD[:, tri[1]])
+            buf[idx, 6:] = tI[:, None] * JI + tD[:, None] * JD
+            agg = cv2.GaussianBlur(buf.reshape(H, W, 9), (0, 0), c.refine_window
+                                   ).reshape(-1, 9)[idx].astype(np.float64)
+            a00, a01, a02, a11, a12, a22 = agg[:, :6].T
+            a00, a11, a22 = a00 + wp, a11 + wp, a22 + wp
+            b = agg[:, 6:] + wp * Dr
+            c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+            c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+            det = a00 * c00 + a01 * c01 + a02 * c02
+            D = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                          c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                          c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], 1) / det[:, None]
+        out = Y.reshape(-1, 3).copy()
+        out[idx] = X + D
+        return out.reshape(Y.shape)
 
     def _reselect(self, gray: np.ndarray, z: np.ndarray, Y: np.ndarray) -> None:
         """Frame c becomes the reference: every first-frame pixel is handed to the new segment
