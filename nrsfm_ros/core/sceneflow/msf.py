@@ -206,22 +206,33 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
 
 
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N, C) float64 of img (H, W, C) at (u, v), clamped to the image (the
-    border replicated).  Exact weights: cv2.remap quantises them to 1/32 px, which is 0.1-0.6 mm
-    of a point at 4 m, more than the sub-millimetre flow this is for."""
+    """Bilinear samples (N, C) float32 of img (H, W, C) float32 at (u, v), clamped to the image
+    (the border replicated).  Exact weights: cv2.remap's own bilinear mode quantises them to
+    1/32 px, 0.1-0.6 mm of a point at 4 m, more than the sub-millimetre flow this is for; so
+    remap only gathers the four neighbours (nearest, integer maps) and the weights are applied
+    here.  The points go in rows of 4096 (remap's sides are limited to 32767)."""
     H, W, C = img.shape
     u = np.clip(u, 0, W - 1)
     v = np.clip(v, 0, H - 1)
-    x0 = np.minimum(u.astype(np.int64), max(W - 2, 0))
-    y0 = np.minimum(v.astype(np.int64), max(H - 2, 0))
-    a = (u - x0)[:, None]
-    b = (v - y0)[:, None]
-    flat = img.reshape(-1, C)
-    i = y0 * W + x0
-    dx, dy = int(W > 1), W * int(H > 1)
-    top = flat[i] * (1 - a) + flat[i + dx] * a
-    bottom = flat[i + dy] * (1 - a) + flat[i + dy + dx] * a
-    return top * (1 - b) + bottom * b
+    x0 = np.minimum(u.astype(np.int32), max(W - 2, 0))
+    y0 = np.minimum(v.astype(np.int32), max(H - 2, 0))
+    a = (u - x0).astype(np.float32)[:, None]
+    b = (v - y0).astype(np.float32)[:, None]
+    n, row = u.size, 4096
+    pad = (-n) % row
+    mx = np.concatenate([x0, np.zeros(pad, np.int32)]).reshape(-1, row)
+    my = np.concatenate([y0, np.zeros(pad, np.int32)]).reshape(-1, row)
+
+    def at(dx: int, dy: int) -> np.ndarray:
+        m = np.dstack([mx + dx, my + dy]).astype(np.int16)
+        return cv2.remap(img, m, None, cv2.INTER_NEAREST).reshape(-1, C)[:n]
+    dx, dy = int(W > 1), int(H > 1)
+    top = at(0, 0)
+    top += (at(dx, 0) - top) * a
+    bottom = at(0, dy)
+    bottom += (at(dx, dy) - bottom) * a
+    top += (bottom - top) * b
+    return top
 
 
 def _block_pcg(Hm: sp.csr_matrix, b: np.ndarray, blocks: np.ndarray, iterations: int = 40,
@@ -285,7 +296,7 @@ class MSFConfig:
     # per-pixel refinement of the segments' flow at full resolution (0 iterations: off; needs
     # the photometric term): every first-frame pixel's 3-D point in frame c, Gauss-Newton on
     # photometric + depth-along-the-ray residuals aggregated over a Gaussian window
-    refine_iterations: int = 4
+    refine_iterations: int = 3
     refine_window: float = 2.0       # px: Gaussian sigma of the window
     refine_prior: float = 0.1        # m: sigma of the prior towards the segment's rigid motion
 
@@ -358,6 +369,31 @@ def _normals(V: np.ndarray) -> np.ndarray:
     return n
 
 
+_TRI = np.triu_indices(6)                   # the 21 entries of a symmetric 6x6 block
+_SYM = np.zeros((6, 6), np.int64)
+_SYM[_TRI] = np.arange(21)
+_SYM[_TRI[1], _TRI[0]] = np.arange(21)
+
+
+def _hessian_pattern(S: int, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR structure of the 6S x 6S normal equations: 6x6 diagonal blocks, then per pair the
+    (a, a), (b, b), (a, b) and (b, a) blocks, in that order; returns, for every value of that
+    order, its slot in the CSR data, and the CSR indices and indptr."""
+    o6 = np.arange(6)
+    pa, pb = pairs[:, 0], pairs[:, 1]
+    seg = np.arange(S)
+    rows, cols = [], []
+    for A_, B_ in ((seg, seg), (pa, pa), (pb, pb), (pa, pb), (pb, pa)):
+        rows.append(np.broadcast_to(A_[:, None, None] * 6 + o6[None, :, None],
+                                    (len(A_), 6, 6)).ravel())
+        cols.append(np.broadcast_to(B_[:, None, None] * 6 + o6[None, None, :],
+                                    (len(B_), 6, 6)).ravel())
+    key = np.concatenate(rows) * (6 * S) + np.concatenate(cols)
+    uniq, slot = np.unique(key, return_inverse=True)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // (6 * S), minlength=6 * S))])
+    return slot.ravel(), (uniq % (6 * S)).astype(np.int32), indptr.astype(np.int32)
+
+
 @dataclass
 class _Ref:
     """A reference frame: its segments and, per solved level, the pixels used."""
@@ -371,6 +407,9 @@ class _Ref:
     # per level: (X (N,3), I (N,), seg (N,), A, photometric ok (N,): away from the image border)
     level_pix: list = field(default_factory=list)
     index: int = 0
+    hess: tuple | None = None             # the 6S x 6S pattern: (slot of each value, indices,
+                                          # indptr), values ordered diag, aa, bb, ab, ba blocks
+    inc: tuple | None = None              # (S x E) incidence of pairs' first / second segment
 
 
 @dataclass
@@ -474,6 +513,10 @@ class MSF:
         dz = np.abs(a[:, 2] - b[:, 2])
         w = 1.0 / (1.0 + (dz / c.smooth_depth_edge) ** 2)
         ref = _Ref(labels, X, S, pairs, w, pts, hp, index=self._frame)
+        ref.hess = _hessian_pattern(S, pairs if c.smoothness > 0 else pairs[:0])
+        E = len(pairs)
+        ref.inc = tuple(sp.csr_matrix((np.ones(E), (pairs[:, k], np.arange(E))), shape=(S, E))
+                        for k in (0, 1))
         lev_first = self._first_level(gray.shape[1])
         for L in _pyramid(gray, z, self.K, lev_first, c.levels, c.highpass):
             lev = int(round(np.log2(self.K[0, 0] / L.K[0, 0])))
@@ -518,45 +561,45 @@ class MSF:
         fx, fy, cx, cy = L.K[0, 0], L.K[1, 1], L.K[0, 2], L.K[1, 2]
         Y = np.einsum('nij,nj->ni', self._R[seg], X) + self._t[seg]
         z = np.maximum(Y[:, 2], 1e-6)
-        u, v = fx * Y[:, 0] / z + cx, fy * Y[:, 1] / z + cy
+        iz = 1.0 / z
+        u, v = fx * Y[:, 0] * iz + cx, fy * Y[:, 1] * iz + cy
         inside = (Y[:, 2] > 1e-6) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-        Hs = np.zeros((S, 36))
-        bs = np.zeros((S, 6))
         # projective point-to-plane ICP
-        iu = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
-        iv = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
+        iu = np.clip(np.rint(np.where(inside, u, 0)), 0, w - 1).astype(np.int64)
+        iv = np.clip(np.rint(np.where(inside, v, 0)), 0, h - 1).astype(np.int64)
         Q = L.V[iv, iu].astype(np.float64)
         n = L.N[iv, iu].astype(np.float64)
-        dist = np.linalg.norm(Y - Q, axis=1)
-        okD = inside & np.isfinite(dist) & np.isfinite(n).all(1) & (dist < tau)
-        n_in = max(int(inside.sum()), 1)
+        d = Y - Q
+        okD = inside & np.isfinite(n).all(1) & np.isfinite(Q[:, 2])
+        okD &= np.where(okD, np.einsum('ij,ij->i', d, d), np.inf) < tau * tau
         consistent = float(okD.sum()) / max(X.shape[0], 1) if X.shape[0] else 0.0
         if not update:
             return consistent
+        # both data terms over all pixels, zero weight where unused: J (N, 6), r, w
+        JJ = np.zeros((X.shape[0], 21))
+        Jr = np.zeros((X.shape[0], 6))
         if c.depth_weight > 0 and okD.any():
-            Yd, nd = Y[okD], n[okD]
-            r = np.einsum('ij,ij->i', nd, Yd - Q[okD]) / c.depth_sigma
-            J = _cross_jac(Yd, nd) / c.depth_sigma
-            wt = c.depth_weight * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
-            Ad = A[:, np.nonzero(okD)[0]]
-            Hs += Ad @ (wt[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36))
-            bs += Ad @ (wt[:, None] * J * r[:, None])
+            nd = np.where(okD[:, None], n, 0.0)
+            r = np.einsum('ij,ij->i', nd, np.where(okD[:, None], d, 0.0)) / c.depth_sigma
+            J = _cross_jac(Y, nd) / c.depth_sigma
+            wt = c.depth_weight * okD * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
+            JJ += wt[:, None] * J[:, _TRI[0]] * J[:, _TRI[1]]
+            Jr += (wt * r)[:, None] * J
         mg = self._margin()
         okI = inside & pok & (u >= mg) & (u <= w - 1 - mg) & (v >= mg) & (v <= h - 1 - mg)
         if c.photometric_weight > 0 and okI.any():
-            idx = np.nonzero(okI)[0]
-            smp = _bilinear(L.img, u[idx], v[idx])
-            r = (smp[:, 0] - I0[idx]) / c.photometric_sigma
-            Yi, zi = Y[idx], z[idx]
-            gx, gy = smp[:, 1] * fx / zi, smp[:, 2] * fy / zi
-            g = np.stack([gx, gy, -(gx * Yi[:, 0] + gy * Yi[:, 1]) / zi], 1) / c.photometric_sigma
-            J = _cross_jac(Yi, g)
-            wt = c.photometric_weight * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
-            Ai = A[:, idx]
-            Hs += Ai @ (wt[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36))
-            bs += Ai @ (wt[:, None] * J * r[:, None])
-        del n_in
-        Hs = Hs.reshape(S, 6, 6)
+            smp = _bilinear(L.img, u, v)
+            r = (smp[:, 0] - I0) / c.photometric_sigma
+            gx, gy = smp[:, 1] * fx * iz, smp[:, 2] * fy * iz
+            g = np.stack([gx, gy, -(gx * Y[:, 0] + gy * Y[:, 1]) * iz], 1) / c.photometric_sigma
+            J = _cross_jac(Y, g)
+            wt = c.photometric_weight * okI * np.minimum(1.0, c.huber / np.maximum(
+                np.abs(r), 1e-12))
+            JJ += wt[:, None] * J[:, _TRI[0]] * J[:, _TRI[1]]
+            Jr += (wt * r)[:, None] * J
+        sums = A @ np.concatenate([JJ, Jr], 1)
+        Hs = sums[:, :21][:, _SYM]                    # (S, 6, 6)
+        bs = sums[:, 21:]
         if common:
             Hg, bg = Hs.sum(0), bs.sum(0)
             dg = np.diag(Hg)
@@ -566,17 +609,13 @@ class MSF:
             self._R = Rd @ self._R
             self._t = self._t @ Rd.T + step[:3]
             return consistent
-        rows, cols, vals = [], [], []
-        base = np.arange(S)[:, None, None] * 6
-        ii = base + np.arange(6)[None, :, None] + 0 * np.arange(6)[None, None, :]
-        jj = base + np.arange(6)[None, None, :] + 0 * np.arange(6)[None, :, None]
         diag = np.einsum('sii->si', Hs)
         # damping: relative to the diagonal, plus a floor for segments with little data
         floor = 1e-6 + 1e-3 * np.median(diag[diag > 0]) if (diag > 0).any() else 1.0
         Hd = Hs + (c.damping * diag[:, :, None] * np.eye(6) + floor * np.eye(6))
-        rows.append(ii.ravel()), cols.append(jj.ravel()), vals.append(Hd.ravel())
-        blocks = Hd.copy()                                # the preconditioner's 6x6 blocks
-        b = bs.copy()
+        vals = [Hd.ravel()]
+        blocks = Hd                                      # the preconditioner's 6x6 blocks
+        b = bs
         P = self._ref.pairs
         if c.smoothness > 0 and len(P):
             npix = np.bincount(seg, minlength=S).astype(np.float64)
@@ -605,20 +644,16 @@ class MSF:
             Hab = wv * np.einsum('eki,ekj->eij', Ja, Jb)
             ga = wp[:, None] * np.einsum('eki,ek->ei', Ja, rr)
             gb = wp[:, None] * np.einsum('eki,ek->ei', Jb, rr)
-            np.add.at(b, pa, ga)
-            np.add.at(b, pb, gb)
-            np.add.at(blocks, pa, Haa)
-            np.add.at(blocks, pb, Hbb)
-            o6 = np.arange(6)
-            for A_, B_, M in ((pa, pa, Haa), (pb, pb, Hbb), (pa, pb, Hab),
-                              (pb, pa, np.transpose(Hab, (0, 2, 1)))):
-                rows.append((A_[:, None, None] * 6 + o6[None, :, None]
-                             + 0 * o6[None, None, :]).ravel())
-                cols.append((B_[:, None, None] * 6 + o6[None, None, :]
-                             + 0 * o6[None, :, None]).ravel())
-                vals.append(M.ravel())
-        Hm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(6 * S, 6 * S))
+            Ia, Ib = self._ref.inc
+            b = b + Ia @ ga + Ib @ gb
+            blocks = blocks + (Ia @ Haa.reshape(-1, 36) + Ib @ Hbb.reshape(-1, 36)
+                               ).reshape(S, 6, 6)
+            vals += [Haa.ravel(), Hbb.ravel(), Hab.ravel(),
+                     np.transpose(Hab, (0, 2, 1)).ravel()]
+        slot, indices, indptr = self._ref.hess
+        vals = np.concatenate(vals)
+        data = np.bincount(slot[:vals.size], weights=vals, minlength=indices.size)
+        Hm = sp.csr_matrix((data, indices, indptr), shape=(6 * S, 6 * S))
         delta = -_block_pcg(Hm, b.ravel(), blocks).reshape(S, 6)
         delta[~np.isfinite(delta).all(1)] = 0.0
         Rd = _exp_so3(delta[:, 3:])
@@ -669,7 +704,12 @@ class MSF:
         D = Dr.copy()
         sI, sD = c.photometric_sigma, c.depth_sigma
         tri = np.triu_indices(3)
-        buf = np.zeros((H * W, 9), np.float32)
+        # the window sums over the pixels' bounding box only (the window's 2.5 sigma around it)
+        rad = int(np.ceil(2.5 * c.refine_window))
+        x0, y0 = max(int(px.min()) - rad, 0), max(int(py.min()) - rad, 0)
+        x1, y1 = min(int(px.max()) + rad + 1, W), min(int(py.max()) + rad + 1, H)
+        box = (py - y0) * (x1 - x0) + (px - x0)
+        buf = np.zeros(((y1 - y0) * (x1 - x0), 9), np.float32)
         for _ in range(c.refine_iterations):
             P = X + D
             u, v, iz, inside = project(P)
@@ -690,11 +730,11 @@ class MSF:
                 * np.minimum(1.0, c.huber / np.maximum(np.abs(rD), 1e-12))
             tI = wI * (np.einsum('ni,ni->n', JI, D) - rI)
             tD = wD * (np.einsum('ni,ni->n', JD, D) - rD)
-            buf[idx, :6] = (wI[:, None] * JI[:, tri[0]] * JI[:, tri[1]]
+            buf[box, :6] = (wI[:, None] * JI[:, tri[0]] * JI[:, tri[1]]
                             + wD[:, None] * JD[:, tri[0]] * JD[:, tri[1]])
-            buf[idx, 6:] = tI[:, None] * JI + tD[:, None] * JD
-            agg = cv2.GaussianBlur(buf.reshape(H, W, 9), (0, 0), c.refine_window
-                                   ).reshape(-1, 9)[idx].astype(np.float64)
+            buf[box, 6:] = tI[:, None] * JI + tD[:, None] * JD
+            agg = cv2.GaussianBlur(buf.reshape(y1 - y0, x1 - x0, 9), (2 * rad + 1, 2 * rad + 1),
+                                   c.refine_window).reshape(-1, 9)[box].astype(np.float64)
             a00, a01, a02, a11, a12, a22 = agg[:, :6].T
             a00, a11, a22 = a00 + wp, a11 + wp, a22 + wp
             b = agg[:, 6:] + wp * Dr
