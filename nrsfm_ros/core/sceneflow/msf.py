@@ -369,10 +369,48 @@ def _normals(V: np.ndarray) -> np.ndarray:
     return n
 
 
-_TRI = np.triu_indices(6)                   # the 21 entries of a symmetric 6x6 block
-_SYM = np.zeros((6, 6), np.int64)
-_SYM[_TRI] = np.arange(21)
-_SYM[_TRI[1], _TRI[0]] = np.arange(21)
+def _segment_slots(seg: np.ndarray, S: int) -> np.ndarray:
+    """(S, n_max) indices of each segment's pixels, padded with len(seg) (a zero row)."""
+    order = np.argsort(seg, kind='stable')
+    cnt = np.bincount(seg, minlength=S)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    n_max = max(int(cnt.max()) if cnt.size else 0, 1)
+    rank = np.arange(seg.size) - np.repeat(start, cnt)
+    slots = np.full((S, n_max), seg.size, np.int64)
+    slots[seg[order], rank] = order
+    return slots
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """[a]x (..., 3, 3) of vectors a (..., 3)."""
+    K = np.zeros(a.shape + (3,))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
+    return K
+
+
+def _pair_normal_equations(Ya: np.ndarray, Yb: np.ndarray, r: np.ndarray, wH: np.ndarray,
+                           wg: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Blocks of the neighbour-rigidity term sum_k |r_k|^2, r_k = (T_a P_k - T_b P_k) / sigma,
+    in closed form: the Jacobian of T P (+ v + w x T P) is [I, -[Y]x], so J_a^T J_b summed over
+    the points is [[n I, -[sum Y_b]x], [[sum Y_a]x, sum (Y_a . Y_b) I - Y_b Y_a^T]].
+    Ya, Yb, r (E, k, 3); wH = w / sigma^2, wg = w / sigma (E,).  Returns Haa, Hbb, Hab (E, 6, 6),
+    ga, gb (E, 6)."""
+    E, k = Ya.shape[:2]
+    eye = np.eye(3)
+
+    def block(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        H = np.empty((E, 6, 6))
+        H[:, :3, :3] = k * eye
+        H[:, :3, 3:] = -_skew(Q.sum(1))
+        H[:, 3:, :3] = _skew(P.sum(1))
+        H[:, 3:, 3:] = (np.einsum('eki,eki->e', P, Q)[:, None, None] * eye
+                        - np.einsum('eki,ekj->eij', Q, P))
+        return H * wH[:, None, None]
+    Haa, Hbb, Hab = block(Ya, Ya), block(Yb, Yb), -block(Ya, Yb)
+    ga = np.concatenate([r.sum(1), np.cross(Ya, r).sum(1)], 1) * wg[:, None]
+    gb = -np.concatenate([r.sum(1), np.cross(Yb, r).sum(1)], 1) * wg[:, None]
+    return Haa, Hbb, Hab, ga, gb
 
 
 def _hessian_pattern(S: int, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -404,7 +442,8 @@ class _Ref:
     pair_w: np.ndarray                    # (E,)
     pair_pts: np.ndarray                  # (E, 3, 3): 3 points per pair (reference frame)
     hp: np.ndarray                        # (H, W) the photometric image (highpass)
-    # per level: (X (N,3), I (N,), seg (N,), A, photometric ok (N,): away from the image border)
+    # per level: (X (N,3), I (N,), seg (N,), slots (S, n_max) of each segment's pixels (N: none),
+    # photometric ok (N,): away from the image border)
     level_pix: list = field(default_factory=list)
     index: int = 0
     hess: tuple | None = None             # the 6S x 6S pattern: (slot of each value, indices,
@@ -523,8 +562,7 @@ class MSF:
             sl = labels[::2 ** lev, ::2 ** lev]
             m = (sl >= 0) & np.isfinite(L.V[..., 2])
             segp = sl[m].astype(np.int64)
-            A = sp.csr_matrix((np.ones(segp.size), (segp, np.arange(segp.size))),
-                              shape=(S, segp.size))
+            A = _segment_slots(segp, S)
             hl, wl = sl.shape
             mg = self._margin()                  # level pixels (the high-pass is per level)
             yy, xx = np.nonzero(m)
@@ -550,7 +588,7 @@ class MSF:
         return consistent
 
     def _gn_step(self, L: _Level, X: np.ndarray, I0: np.ndarray, seg: np.ndarray,
-                 A: sp.csr_matrix, pok: np.ndarray, tau: float, update: bool = True,
+                 A: np.ndarray, pok: np.ndarray, tau: float, update: bool = True,
                  common: bool = False
                  ) -> float:
         """One damped Gauss-Newton step of every segment's pose (``common``: one increment
@@ -575,16 +613,18 @@ class MSF:
         consistent = float(okD.sum()) / max(X.shape[0], 1) if X.shape[0] else 0.0
         if not update:
             return consistent
-        # both data terms over all pixels, zero weight where unused: J (N, 6), r, w
-        JJ = np.zeros((X.shape[0], 21))
-        Jr = np.zeros((X.shape[0], 6))
+        # both data terms over all pixels, zero weight where unused; per segment
+        # sum w J^T J and sum w J r as batched products over its pixels (slots A)
+        N = X.shape[0]
+        Jw = np.zeros((2, N + 1, 7))                 # sqrt(w) [J | r], depth then photometric
         if c.depth_weight > 0 and okD.any():
             nd = np.where(okD[:, None], n, 0.0)
             r = np.einsum('ij,ij->i', nd, np.where(okD[:, None], d, 0.0)) / c.depth_sigma
             J = _cross_jac(Y, nd) / c.depth_sigma
             wt = c.depth_weight * okD * np.minimum(1.0, c.huber / np.maximum(np.abs(r), 1e-12))
-            JJ += wt[:, None] * J[:, _TRI[0]] * J[:, _TRI[1]]
-            Jr += (wt * r)[:, None] * J
+            sw = np.sqrt(wt)[:, None]
+            Jw[0, :N, :6] = J * sw
+            Jw[0, :N, 6] = r * sw[:, 0]
         mg = self._margin()
         okI = inside & pok & (u >= mg) & (u <= w - 1 - mg) & (v >= mg) & (v <= h - 1 - mg)
         if c.photometric_weight > 0 and okI.any():
@@ -595,11 +635,14 @@ class MSF:
             J = _cross_jac(Y, g)
             wt = c.photometric_weight * okI * np.minimum(1.0, c.huber / np.maximum(
                 np.abs(r), 1e-12))
-            JJ += wt[:, None] * J[:, _TRI[0]] * J[:, _TRI[1]]
-            Jr += (wt * r)[:, None] * J
-        sums = A @ np.concatenate([JJ, Jr], 1)
-        Hs = sums[:, :21][:, _SYM]                    # (S, 6, 6)
-        bs = sums[:, 21:]
+            sw = np.sqrt(wt)[:, None]
+            Jw[1, :N, :6] = J * sw
+            Jw[1, :N, 6] = r * sw[:, 0]
+        G = Jw[:, A].reshape(2 * A.shape[0], A.shape[1], 7)    # (2S, n_max, 7)
+        M = np.matmul(G.transpose(0, 2, 1), G)
+        M = M[:A.shape[0]] + M[A.shape[0]:]
+        Hs = M[:, :6, :6]                             # (S, 6, 6)
+        bs = M[:, :6, 6]
         if common:
             Hg, bg = Hs.sum(0), bs.sum(0)
             dg = np.diag(Hg)
@@ -625,25 +668,8 @@ class MSF:
             Ya = np.einsum('eij,ekj->eki', self._R[pa], pts) + self._t[pa][:, None]
             Yb = np.einsum('eij,ekj->eki', self._R[pb], pts) + self._t[pb][:, None]
             r = (Ya - Yb) / c.depth_sigma                 # (E, 3, 3)
-
-            def jac(Yp: np.ndarray) -> np.ndarray:        # (E, 3pts, 3res, 6)
-                E = Yp.shape[0]
-                J = np.zeros((E, 3, 3, 6))
-                J[..., :3] = np.eye(3)
-                x, y, zz = Yp[..., 0], Yp[..., 1], Yp[..., 2]
-                # d(w x Y)/dw = -[Y]x
-                J[..., 0, 4], J[..., 0, 5] = zz, -y
-                J[..., 1, 3], J[..., 1, 5] = -zz, x
-                J[..., 2, 3], J[..., 2, 4] = y, -x
-                return J.reshape(E, 9, 6) / c.depth_sigma
-            Ja, Jb = jac(Ya), -jac(Yb)
-            rr = r.reshape(-1, 9)
-            wv = wp[:, None, None]
-            Haa = wv * np.einsum('eki,ekj->eij', Ja, Ja)
-            Hbb = wv * np.einsum('eki,ekj->eij', Jb, Jb)
-            Hab = wv * np.einsum('eki,ekj->eij', Ja, Jb)
-            ga = wp[:, None] * np.einsum('eki,ek->ei', Ja, rr)
-            gb = wp[:, None] * np.einsum('eki,ek->ei', Jb, rr)
+            Haa, Hbb, Hab, ga, gb = _pair_normal_equations(Ya, Yb, r, wp / c.depth_sigma ** 2,
+                                                           wp / c.depth_sigma)
             Ia, Ib = self._ref.inc
             b = b + Ia @ ga + Ib @ gb
             blocks = blocks + (Ia @ Haa.reshape(-1, 36) + Ib @ Hbb.reshape(-1, 36)
