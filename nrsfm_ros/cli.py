@@ -523,7 +523,7 @@ def cmd_process(args: argparse.Namespace) -> int:
     if args.report:
         write_report(report, args.report)
     print(f"processed {sum(d['inputs'].values())} messages in {d['seconds']} s "
-          f"({d['realtime_factor']}x real time); outputs:")
+          f"(CPU {d.get('cpu_s')} s; {d['realtime_factor']}x real time); outputs:")
     for topic, n in d['outputs'].items():
         print(f'  {topic}: {n}')
     for line in format_timing(d):
@@ -547,13 +547,14 @@ def format_timing(d: dict[str, Any]) -> list[str]:
     if not rows:
         return []
     io = d.get('io_s', {})
-    lines = ['per-stage processing time (ms per message; each stage alone):',
+    lines = ['per-stage processing time (ms per message; each stage alone; cpu s: the '
+             "process' CPU time, which other work on the machine does not inflate):",
              f"  {'stage':<14}{'input':<18}{'calls':>6}{'mean':>9}{'p50':>9}{'p90':>9}"
-             f"{'max':>9}{'total s':>9}"]
+             f"{'max':>9}{'total s':>9}{'cpu s':>9}"]
     for stage, kind, t in rows:
         lines.append(f"  {stage:<14}{kind:<18}{t['calls']:>6}{t['mean_ms']:>9.2f}"
                      f"{t['p50_ms']:>9.2f}{t['p90_ms']:>9.2f}{t['max_ms']:>9.2f}"
-                     f"{t['total_s']:>9.3f}")
+                     f"{t['total_s']:>9.3f}{t.get('cpu_s', float('nan')):>9.3f}")
     if io:
         lines.append('  outside the stages: ' + ', '.join(f'{k} {v:.3f} s'
                                                        for k, v in io.items()))

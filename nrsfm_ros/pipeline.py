@@ -45,8 +45,10 @@ class ProcessReport:
     failures: list[dict[str, Any]] = field(default_factory=list)
     damage: list[str] = field(default_factory=list)   # what a damaged input bag lost
     seconds: float = 0.0
+    cpu_s: float = 0.0          # the process' CPU time over the run (user + system)
     bag_duration_s: float = 0.0
-    # stage -> input kind -> calls, total_s, mean/p50/p90/max ms of its processing callbacks
+    # stage -> input kind -> calls, total_s, cpu_s (the process' CPU time in them),
+    # mean/p50/p90/max ms of its processing callbacks
     # (each stage's own work: its outputs' downstream processing is not in it); the
     # reconstructor's end-of-stream flush is its kind 'flush'
     timing: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
@@ -58,7 +60,8 @@ class ProcessReport:
     def as_dict(self) -> dict[str, Any]:
         return {'inputs': self.inputs, 'outputs': self.outputs, 'failures': self.failures,
                 'damage': self.damage,
-                'seconds': round(self.seconds, 3), 'bag_duration_s': self.bag_duration_s,
+                'seconds': round(self.seconds, 3), 'cpu_s': round(self.cpu_s, 3),
+                'bag_duration_s': self.bag_duration_s,
                 'realtime_factor': round(self.bag_duration_s / self.seconds, 2)
                 if self.seconds else None,
                 'timing': self.timing, 'io_s': {k: round(v, 3) for k, v in self.io_s.items()},
@@ -93,7 +96,7 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
     info = bag_info(in_path)
     total = info['messages']
     report.bag_duration_s = info['duration_s']
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
 
     def feed(topic: str, msg: Any, stamp: int, writer: BagWriter) -> None:
         for stage, kind in ROUTES.get(topic, []):
@@ -150,7 +153,7 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
         if 'reconstructor' in procs:
             rec = procs['reconstructor']
             assert isinstance(rec, ReconstructorProcessor)
-            tf = time.perf_counter()
+            tf, cf = time.perf_counter(), time.process_time()
             try:
                 flushed = rec.flush()
             except Exception as err:  # noqa: BLE001 -- contained like every message
@@ -158,12 +161,13 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
                 report.failures.append({'stage': 'reconstructor (flush)', 'topic': '',
                                         'stamp_ns': 0, 'error': f'{type(err).__name__}: {err}'})
             else:
-                rec.stats.add_time('flush', time.perf_counter() - tf)
+                rec.stats.add_time('flush', time.perf_counter() - tf, time.process_time() - cf)
             for out_topic, out_type, out_msg in flushed:
                 emit(out_topic, out_type, out_msg, 0, writer, 'reconstructor')
     if progress:
         sys.stderr.write('\n')
     report.seconds = time.perf_counter() - t0
+    report.cpu_s = time.process_time() - c0
     report.timing = {name: {kind: t.summary() for kind, t in proc.stats.timing.items()}
                      for name, proc in procs.items()}
     report.status = {name: st for name, proc in procs.items() if (st := proc.status())}

@@ -136,8 +136,12 @@ def test_single_bag_report_has_per_stage_timing(bags, tmp_path, capsys):
         t = timing[stage][kind]
         assert t['calls'] == FRAMES, (stage, kind)
         assert 0 < t['p50_ms'] <= t['p90_ms'] <= t['max_ms']
-        assert t['mean_ms'] <= t['max_ms'] and t['total_s'] > 0
+        assert t['mean_ms'] <= t['max_ms'] and t['total_s'] > 0 and t['cpu_s'] > 0
     assert timing['reconstructor']['flush']['calls'] == 1
+    # CPU time per stage: within the run's CPU time (and the tracker's work is CPU-bound)
+    stage_cpu = sum(t['cpu_s'] for kinds in timing.values() for t in kinds.values())
+    assert stage_cpu <= rep['cpu_s'] * 1.01 + 0.01
+    assert timing['tracker']['image']['cpu_s'] > 0.3 * timing['tracker']['image']['total_s']
     assert set(rep['io_s']) == {'read', 'deserialize', 'write'}
     # the stages' own time never exceeds the run's
     stage_s = sum(t['total_s'] for kinds in timing.values() for t in kinds.values())
