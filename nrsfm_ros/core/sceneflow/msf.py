@@ -398,18 +398,25 @@ def _pair_normal_equations(Ya: np.ndarray, Yb: np.ndarray, r: np.ndarray, wH: np
     ga, gb (E, 6)."""
     E, k = Ya.shape[:2]
     eye = np.eye(3)
+    sa, sb = Ya.sum(1), Yb.sum(1)
 
-    def block(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    def block(P: np.ndarray, sp_: np.ndarray, Q: np.ndarray, sq: np.ndarray) -> np.ndarray:
         H = np.empty((E, 6, 6))
         H[:, :3, :3] = k * eye
-        H[:, :3, 3:] = -_skew(Q.sum(1))
-        H[:, 3:, :3] = _skew(P.sum(1))
-        H[:, 3:, 3:] = (np.einsum('eki,eki->e', P, Q)[:, None, None] * eye
-                        - np.einsum('eki,ekj->eij', Q, P))
-        return H * wH[:, None, None]
-    Haa, Hbb, Hab = block(Ya, Ya), block(Yb, Yb), -block(Ya, Yb)
-    ga = np.concatenate([r.sum(1), np.cross(Ya, r).sum(1)], 1) * wg[:, None]
-    gb = -np.concatenate([r.sum(1), np.cross(Yb, r).sum(1)], 1) * wg[:, None]
+        H[:, :3, 3:] = -_skew(sq)
+        H[:, 3:, :3] = _skew(sp_)
+        QP = Q[:, 0, :, None] * P[:, 0, None, :]
+        for j in range(1, k):
+            QP += Q[:, j, :, None] * P[:, j, None, :]
+        H[:, 3:, 3:] = (QP[:, 0, 0] + QP[:, 1, 1] + QP[:, 2, 2])[:, None, None] * eye - QP
+        H *= wH[:, None, None]
+        return H
+    Haa, Hbb = block(Ya, sa, Ya, sa), block(Yb, sb, Yb, sb)
+    Hab = block(Ya, sa, Yb, sb)
+    Hab *= -1
+    rs = r.sum(1)
+    ga = np.concatenate([rs, np.cross(Ya, r).sum(1)], 1) * wg[:, None]
+    gb = np.concatenate([rs, np.cross(Yb, r).sum(1)], 1) * -wg[:, None]
     return Haa, Hbb, Hab, ga, gb
 
 
@@ -680,7 +687,9 @@ class MSF:
         vals = np.concatenate(vals)
         data = np.bincount(slot[:vals.size], weights=vals, minlength=indices.size)
         Hm = sp.csr_matrix((data, indices, indptr), shape=(6 * S, 6 * S))
-        delta = -_block_pcg(Hm, b.ravel(), blocks).reshape(S, 6)
+        # an inexact step: 8 preconditioned CG iterations (relative residual 1e-2) cost a fifth
+        # of a converged solve and, measured, were as accurate (flag: better with the occluder)
+        delta = -_block_pcg(Hm, b.ravel(), blocks, iterations=8, tol=1e-2).reshape(S, 6)
         delta[~np.isfinite(delta).all(1)] = 0.0
         Rd = _exp_so3(delta[:, 3:])
         self._R = Rd @ self._R
