@@ -568,6 +568,9 @@ class MSF:
             lev = int(round(np.log2(self.K[0, 0] / L.K[0, 0])))
             sl = labels[::2 ** lev, ::2 ** lev]
             m = (sl >= 0) & np.isfinite(L.V[..., 2])
+            if lev == lev_first:              # the finest level: a checkerboard of pixels
+                yy_, xx_ = np.mgrid[:m.shape[0], :m.shape[1]]
+                m &= (yy_ + xx_) % 2 == 0
             segp = sl[m].astype(np.int64)
             A = _segment_slots(segp, S)
             hl, wl = sl.shape
