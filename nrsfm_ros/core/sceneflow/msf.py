@@ -482,7 +482,8 @@ class MSF:
         self._Y_in_ref: np.ndarray | None = None  # (H, W, 3)
         self._seg_of0: np.ndarray | None = None   # (H, W) active-ref segment of each pixel
         # first-frame pixels with depth: flat indices, points (N, 3), photometric values (N,)
-        self._pix0: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # (the refinement works on their bounding box: slices, points, photometric values)
+        self._pix0: tuple[tuple[slice, slice], np.ndarray, np.ndarray] | None = None
         self.reselections: list[int] = []
         self._frame = -1
 
@@ -501,9 +502,13 @@ class MSF:
             self._X0 = self._ref.X.copy()
             self._Y_in_ref = self._X0.copy()
             self._seg_of0 = self._ref.labels.copy()
-            idx = np.flatnonzero(np.isfinite(self._X0).all(-1))
-            self._pix0 = (idx, self._X0.reshape(-1, 3)[idx].astype(np.float64),
-                          self._ref.hp.ravel()[idx].astype(np.float64))
+            ok = np.isfinite(self._X0).all(-1)
+            if ok.any():
+                rad = int(np.ceil(2.5 * self.cfg.refine_window))
+                ys, xs = np.nonzero(ok.any(1))[0], np.nonzero(ok.any(0))[0]
+                box = (slice(max(int(ys[0]) - rad, 0), int(ys[-1]) + rad + 1),
+                       slice(max(int(xs[0]) - rad, 0), int(xs[-1]) + rad + 1))
+                self._pix0 = (box, self._X0[box].copy(), self._ref.hp[box].copy())
             return None
         if gray.shape != self._ref.labels.shape:
             raise ValueError(f'image: size {gray.shape} differs from the reference '
@@ -706,85 +711,96 @@ class MSF:
         Huber-weighted; their normal equations, linearised at each pixel's own D, are averaged
         over a Gaussian window (Lucas-Kanade in 3-D: a locally constant displacement), plus a
         weak prior towards the rigid prediction, which is all that is left where the pixel is
-        out of the image or behind a nearer surface (the rigid prediction's depth test)."""
+        out of the image or behind a nearer surface (the rigid prediction's depth test).
+        Dense float32 arrays over the first frame's bounding box."""
         c = self.cfg
+        if self._pix0 is None:
+            return Y
         H, W = z.shape
-        idx, X, I0 = self._pix0
-        Yr = Y.reshape(-1, 3)[idx].astype(np.float64)
-        ok = np.isfinite(Yr).all(1)
+        box, X, I0 = self._pix0
+        Yr = Y[box]
+        ok = np.isfinite(Yr).all(-1) & np.isfinite(X).all(-1)
         if not ok.any():
             return Y
-        idx, X, I0, Yr = idx[ok], X[ok], I0[ok], Yr[ok]
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        h, w = ok.shape
+        oy, ox = box[0].start, box[1].start
+        X = np.where(ok[..., None], X, 0).astype(np.float32)
+        Dr = np.where(ok[..., None], Yr - X, 0).astype(np.float32)
+        fx, fy, cx, cy = (np.float32(a) for a in (self.K[0, 0], self.K[1, 1], self.K[0, 2],
+                                                  self.K[1, 2]))
         known = np.isfinite(z)
         zf = np.where(known, z, 0).astype(np.float32)
         nodepth = cv2.dilate((~known).astype(np.uint8), np.ones((3, 3), np.uint8))
 
         def sobel(a: np.ndarray, dx: int, dy: int) -> np.ndarray:
             return cv2.Sobel(a, cv2.CV_32F, dx, dy, ksize=3, scale=1 / 8)
-        img = np.dstack([hp, sobel(hp, 1, 0), sobel(hp, 0, 1), zf, sobel(zf, 1, 0),
-                         sobel(zf, 0, 1), nodepth.astype(np.float32)])
+        exact = np.dstack([hp, zf])                  # sampled with exact weights
+        approx = np.dstack([sobel(hp, 1, 0), sobel(hp, 0, 1), sobel(zf, 1, 0), sobel(zf, 0, 1),
+                            nodepth.astype(np.float32)])   # Jacobians, mask: cv2's bilinear
 
         def project(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-            iz = 1.0 / np.maximum(P[:, 2], 1e-6)
-            u, v = fx * P[:, 0] * iz + cx, fy * P[:, 1] * iz + cy
-            inside = (P[:, 2] > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+            iz = 1 / np.maximum(P[..., 2], np.float32(1e-6))
+            u, v = fx * P[..., 0] * iz + cx, fy * P[..., 1] * iz + cy
+            inside = ok & (P[..., 2] > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
             return u, v, iz, inside
-        u, v, _, vis = project(Yr)
+        u, v, _, vis = project(X + Dr)
         iu = np.clip(np.rint(np.where(vis, u, 0)), 0, W - 1).astype(np.int64)
         iv = np.clip(np.rint(np.where(vis, v, 0)), 0, H - 1).astype(np.int64)
-        vis &= ~(zf[iv, iu] < Yr[:, 2] - c.max_depth_residual) | ~known[iv, iu]
+        vis &= ~(zf[iv, iu] < (X + Dr)[..., 2] - c.max_depth_residual) | ~known[iv, iu]
         mg = self._margin()
-        px, py = idx % W, idx // W
-        pok = (px >= mg) & (px <= W - 1 - mg) & (py >= mg) & (py <= H - 1 - mg)
-        wp = 1.0 / c.refine_prior ** 2
-        Dr = Yr - X
+        py, px = np.mgrid[oy:oy + h, ox:ox + w]
+        vis_I = vis & (px >= mg) & (px <= W - 1 - mg) & (py >= mg) & (py <= H - 1 - mg)
+        wp = np.float32(1.0 / c.refine_prior ** 2)
         D = Dr.copy()
-        sI, sD = c.photometric_sigma, c.depth_sigma
-        tri = np.triu_indices(3)
-        # the window sums over the pixels' bounding box only (the window's 2.5 sigma around it)
+        sI, sD = np.float32(c.photometric_sigma), np.float32(c.depth_sigma)
         rad = int(np.ceil(2.5 * c.refine_window))
-        x0, y0 = max(int(px.min()) - rad, 0), max(int(py.min()) - rad, 0)
-        x1, y1 = min(int(px.max()) + rad + 1, W), min(int(py.max()) + rad + 1, H)
-        box = (py - y0) * (x1 - x0) + (px - x0)
-        buf = np.zeros(((y1 - y0) * (x1 - x0), 9), np.float32)
+        hub = np.float32(c.huber)
+        buf = np.empty((h, w, 9), np.float32)
         for _ in range(c.refine_iterations):
             P = X + D
             u, v, iz, inside = project(P)
             inside &= vis
-            smp = _bilinear(img, u, v)
-            xz, yz = P[:, 0] * iz, P[:, 1] * iz
-            gxf, gyf = smp[:, 1] * fx * iz, smp[:, 2] * fy * iz
-            JI = np.stack([gxf, gyf, -(gxf * xz + gyf * yz)], 1) / sI
-            rI = (smp[:, 0] - I0) / sI
-            dxf, dyf = smp[:, 4] * fx * iz, smp[:, 5] * fy * iz
-            JD = np.stack([-dxf, -dyf, 1.0 + dxf * xz + dyf * yz], 1) / sD
-            rD = (P[:, 2] - smp[:, 3]) / sD
-            okI = inside & pok & (u >= mg) & (u <= W - 1 - mg) & (v >= mg) & (v <= H - 1 - mg)
-            wI = c.photometric_weight * okI * np.minimum(1.0, c.huber / np.maximum(
-                np.abs(rI), 1e-12))
-            wD = c.depth_weight * (inside & (smp[:, 6] < 1e-3)
-                                   & (np.abs(rD) * sD < c.max_depth_residual)) \
-                * np.minimum(1.0, c.huber / np.maximum(np.abs(rD), 1e-12))
-            tI = wI * (np.einsum('ni,ni->n', JI, D) - rI)
-            tD = wD * (np.einsum('ni,ni->n', JD, D) - rD)
-            buf[box, :6] = (wI[:, None] * JI[:, tri[0]] * JI[:, tri[1]]
-                            + wD[:, None] * JD[:, tri[0]] * JD[:, tri[1]])
-            buf[box, 6:] = tI[:, None] * JI + tD[:, None] * JD
-            agg = cv2.GaussianBlur(buf.reshape(y1 - y0, x1 - x0, 9), (2 * rad + 1, 2 * rad + 1),
-                                   c.refine_window).reshape(-1, 9)[box].astype(np.float64)
-            a00, a01, a02, a11, a12, a22 = agg[:, :6].T
+            uf, vf = u.ravel(), v.ravel()
+            ex = _bilinear(exact, uf, vf).reshape(h, w, 2)
+            ap = cv2.remap(approx, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            xz, yz = P[..., 0] * iz, P[..., 1] * iz
+            gxf, gyf = ap[..., 0] * (fx / sI) * iz, ap[..., 1] * (fy / sI) * iz
+            JI = (gxf, gyf, -(gxf * xz + gyf * yz))
+            rI = (ex[..., 0] - I0) / sI
+            dxf, dyf = ap[..., 2] * (fx / sD) * iz, ap[..., 3] * (fy / sD) * iz
+            JD = (-dxf, -dyf, 1 / sD + dxf * xz + dyf * yz)
+            rD = (P[..., 2] - ex[..., 1]) / sD
+            okI = inside & vis_I & (u >= mg) & (u <= W - 1 - mg) & (v >= mg) & (v <= H - 1 - mg)
+            wI = (c.photometric_weight * okI) * np.minimum(1, hub / np.maximum(np.abs(rI), 1e-12))
+            okD = inside & (ap[..., 4] < 1e-3) & (np.abs(rD) * sD < c.max_depth_residual)
+            wD = (c.depth_weight * okD) * np.minimum(1, hub / np.maximum(np.abs(rD), 1e-12))
+            wI = np.where(np.isfinite(rI), wI, 0).astype(np.float32)
+            wD = np.where(np.isfinite(rD), wD, 0).astype(np.float32)
+            rI, rD = np.nan_to_num(rI), np.nan_to_num(rD)
+            tI = wI * (JI[0] * D[..., 0] + JI[1] * D[..., 1] + JI[2] * D[..., 2] - rI)
+            tD = wD * (JD[0] * D[..., 0] + JD[1] * D[..., 1] + JD[2] * D[..., 2] - rD)
+            k = 0
+            for i in range(3):
+                wJi, wJd = wI * JI[i], wD * JD[i]
+                for j in range(i, 3):
+                    np.add(wJi * JI[j], wJd * JD[j], out=buf[..., k])
+                    k += 1
+                np.add(tI * JI[i], tD * JD[i], out=buf[..., 6 + i])
+            agg = cv2.GaussianBlur(buf, (2 * rad + 1, 2 * rad + 1), c.refine_window
+                                   ).astype(np.float64)
+            a00, a01, a02, a11, a12, a22 = (agg[..., i] for i in range(6))
             a00, a11, a22 = a00 + wp, a11 + wp, a22 + wp
-            b = agg[:, 6:] + wp * Dr
+            b = agg[..., 6:] + wp * Dr
             c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
             c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
             det = a00 * c00 + a01 * c01 + a02 * c02
-            D = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
-                          c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
-                          c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], 1) / det[:, None]
-        out = Y.reshape(-1, 3).copy()
-        out[idx] = X + D
-        return out.reshape(Y.shape)
+            D = (np.stack([c00 * b[..., 0] + c01 * b[..., 1] + c02 * b[..., 2],
+                           c01 * b[..., 0] + c11 * b[..., 1] + c12 * b[..., 2],
+                           c02 * b[..., 0] + c12 * b[..., 1] + c22 * b[..., 2]], -1)
+                 / det[..., None]).astype(np.float32)
+        out = Y.copy()
+        out[box] = np.where(ok[..., None], X + D, Y[box])
+        return out
 
     def _reselect(self, gray: np.ndarray, z: np.ndarray, Y: np.ndarray) -> None:
         """Frame c becomes the reference: every first-frame pixel is handed to the new segment
