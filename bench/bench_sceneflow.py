@@ -22,11 +22,13 @@ frame); relative EPE = mean error / mean true displacement in the object frame (
 ego-motion removed with the true poses); 'zero' is zero object-frame flow (a static world).
 Sensor noise ``--sensor``: none (perfect rendered depth, as the bags carry) and/or rgbd (image
 sigma 2, depth sigma 0.5e-3 z^2 m, ~8 mm at 4 m, seeded).  frames/s: estimation per frame after
-the reference (one process; the machine may be shared).
+the reference, from CPU time (process_time: all of the process's threads) and from wall time
+(one process; the machine may be shared: the load average is printed).
 """
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -69,7 +71,8 @@ def run_case(surface: str, size: tuple[int, int], occluder: bool, sensor: str, f
     case = {'surface': surface, 'size': f'{size[0]}x{size[1]}', 'occluder': occluder,
             'sensor': sensor}
     rows = [dict(case, method='zero', **dict(zip(('epe_m', 'rel_epe'), score(
-        np.full(gt_obj.shape, np.nan, np.float32), seq, gt_obj, valid, X0))), fps=None)]
+        np.full(gt_obj.shape, np.nan, np.float32), seq, gt_obj, valid, X0))), fps=None,
+        fps_cpu=None)]
     # zero object flow: NaN scores as zero displacement in the scored (object) frame
     for name, fn in (('DIS+depth', lambda: dis_depth_flow(seq.images, depth, seq.K)),
                      ('segment ICP', lambda: msf_sequence(seq.images, depth, seq.K,
@@ -80,7 +83,8 @@ def run_case(surface: str, size: tuple[int, int], occluder: bool, sensor: str, f
         del t0
         e, r = score(flow, seq, gt_obj, valid, X0)
         rows.append(dict(case, method=name, epe_m=e, rel_epe=r,
-                         fps=1.0 / max(st['seconds_per_frame'], 1e-9)))
+                         fps=1.0 / max(st['seconds_per_frame'], 1e-9),
+                         fps_cpu=1.0 / max(st['cpu_seconds_per_frame'], 1e-9)))
     dis = rows[1]['epe_m']
     for row in rows:
         row['vs_dis'] = row['epe_m'] / dis
@@ -187,10 +191,12 @@ def main() -> int:
                     print(f'# done {surface} {size} occluder={occ} sensor={sensor}',
                           file=sys.stderr, flush=True)
     table(['surface', 'size', 'occluder', 'sensor', 'method', 'EPE mm', 'rel EPE',
-           'EPE / DIS', 'frames/s'],
+           'EPE / DIS', 'frames/s (CPU)', 'frames/s (wall)'],
           [(r['surface'], r['size'], 'yes' if r['occluder'] else 'no', r['sensor'], r['method'],
             f"{1000 * r['epe_m']:.2f}", f"{r['rel_epe']:.3f}", f"{r['vs_dis']:.2f}",
+            '-' if r['fps'] is None else f"{r['fps_cpu']:.1f}",
             '-' if r['fps'] is None else f"{r['fps']:.1f}") for r in rows])
+    print(f'load average (1, 5, 15 min) at the end: {os.getloadavg()}')
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

@@ -837,23 +837,26 @@ class MSF:
 def msf_sequence(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: np.ndarray,
                  config: MSFConfig | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Flow (F-1, H, W, 3) float32 from the first frame to each later one (first frame's
-    camera frame; NaN where unknown), valid (F-1, H, W) and stats (seconds per frame,
-    re-selected references)."""
+    camera frame; NaN where unknown), valid (F-1, H, W) and stats (wall and CPU seconds per
+    frame after the reference, re-selected references)."""
     if len(images) != len(depths) or len(images) < 2:
         raise ValueError(f'images, depths: expected the same number (>= 2) of frames, got '
                          f'{len(images)} and {len(depths)}')
     est = MSF(K, config)
-    flows, valids, secs = [], [], []
+    flows, valids, secs, cpu = [], [], [], []
     t0 = time.perf_counter()
     est.step(images[0], depths[0])
     ref_s = time.perf_counter() - t0
     for img, d in zip(images[1:], depths[1:]):
+        c0 = time.process_time()
         fr = est.step(img, d)
+        cpu.append(time.process_time() - c0)
         flows.append(fr.flow)
         valids.append(fr.valid)
         secs.append(fr.seconds)
     return (np.stack(flows), np.stack(valids),
-            {'seconds_per_frame': float(np.mean(secs)), 'reference_seconds': ref_s,
+            {'seconds_per_frame': float(np.mean(secs)), 'cpu_seconds_per_frame':
+             float(np.mean(cpu)), 'reference_seconds': ref_s,
              'reselections': list(est.reselections)})
 
 
@@ -876,10 +879,10 @@ def dis_depth_flow(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K
     X0 = back_project(z0, K)
     H, W = g0.shape
     gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    flows, valids, secs = [], [], []
+    flows, valids, secs, cpu = [], [], [], []
     prev = None
     for img, d in zip(images[1:], depths[1:]):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         g = np.clip(to_gray(img), 0, 255).astype(np.uint8)
         of = dis.calc(g0, g, None if prev is None else prev.copy())   # seeded by the last
         prev = of
@@ -893,7 +896,9 @@ def dis_depth_flow(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K
         flows.append(fl.astype(np.float32))
         valids.append(np.isfinite(fl).all(-1))
         secs.append(time.perf_counter() - t0)
-    return np.stack(flows), np.stack(valids), {'seconds_per_frame': float(np.mean(secs))}
+        cpu.append(time.process_time() - c0)
+    return np.stack(flows), np.stack(valids), {'seconds_per_frame': float(np.mean(secs)),
+                                               'cpu_seconds_per_frame': float(np.mean(cpu))}
 
 
 def with_config(config: MSFConfig | None, **changes: object) -> MSFConfig:
