@@ -252,9 +252,10 @@ class ReconstructorParams(Params):
     spva_refresh: float = rule(0.0, _unit_or_zero,
                                'spva: rate at which the prior follows the visible tracks\' '
                                'shapes after each frame (0: fixed prior)')
-    spva_iterations: int = rule(20, _at_least(1),
-                                'spva: ADMM iterations per frame (the per-frame latency: about '
-                                'linear in them; 12 loses ~5% e3D)')
+    spva_iterations: int = rule(10, _at_least(1),
+                                'spva: ADMM iterations per frame, warm-started from the '
+                                'previous frame\'s duals (the per-frame latency: about linear '
+                                'in them)')
     hdmnet_model: str = rule('', None, 'hdmnet: ONNX model file (empty: the shipped '
                              'nrsfm_ros/models/hdmnet.onnx)')
     hdmnet_threads: int = rule(2, _at_least(1), 'hdmnet: ONNX Runtime threads')

@@ -25,7 +25,9 @@ pixel by the occlusion tensor O = 1 - V.
    (c_p I + v_p s^2 R2^T R2)^-1 = (I - R2^T R2) / c_p + R2^T R2 / (c_p + v_p s^2),
    c_p = rho + rho_tv ||D||^2 + gamma o_p.  The start is the least-squares fit of the subspace to
    the visible tracks; the camera is fitted (weighted orthographic Procrustes, ``dspr._fit``) to
-   the previous frame's shape, then once more to the solution, which is refined again.
+   the previous frame's shape, then once more to the solution, which is refined again.  The
+   scaled duals (U, U2) start from the previous solve's: consecutive frames are nearly the same
+   problem, so 10 warm-started iterations per frame match 20 cold ones (the latency).
 4. **Refresh** (``refresh`` > 0): after each frame, T_p += refresh v_p (X_p - T_p): the prior
    follows the surface where it is seen and keeps its last seen state where it is hidden.
 
@@ -120,7 +122,7 @@ class ShapePrior:
     def __init__(self, shapes: np.ndarray, V: np.ndarray, ref: np.ndarray,
                  prior_frames: int = 10, weighting: str = 'pixel', prior_weight: float = 10.0,
                  smoothness: float = 0.05, low_rank: float = 10.0, rank: int = 4,
-                 iterations: int = 20, refresh: float = 0.0, neighbours: int = 4) -> None:
+                 iterations: int = 10, refresh: float = 0.0, neighbours: int = 4) -> None:
         shapes = np.asarray(shapes, dtype=np.float64)
         if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[1] < 4:
             raise ValueError(f'shapes: expected (F0, P, 3) with P >= 4, got {shapes.shape}')
@@ -158,6 +160,7 @@ class ShapePrior:
         self.Dt = self.D.T.tocsr()
         self.L = _norm2(self.D)
         self._last = self.T.copy()         # the previous frame's shape: its camera's start
+        self._duals: tuple[np.ndarray, np.ndarray] | None = None   # ADMM's, for the next solve
         self.seconds: list[float] = []
 
     @classmethod
@@ -233,9 +236,14 @@ class ShapePrior:
         floor = EPS_PX / (EPS_PX + thresh)
         D, Dt, B = self.D, self.Dt, self.B
         X = X.copy()
-        Z, U = X.copy(), np.zeros_like(X)
         GX = D @ X
-        Q, U2 = GX.copy(), np.zeros_like(GX)
+        if self._duals is not None:            # warm start: the last solve's scaled duals
+            U, U2 = (a.copy() for a in self._duals)
+            Z = X + U
+            Q = GX + U2
+        else:
+            Z, U = X.copy(), np.zeros_like(X)
+            Q, U2 = GX.copy(), np.zeros_like(GX)
         for _ in range(iterations):
             GX -= Q
             GX += U2                                   # D X - Q + U2
@@ -270,6 +278,7 @@ class ShapePrior:
             U -= Z
             U2 += GX
             U2 -= Q
+        self._duals = (U, U2)
         return X
 
     def solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
@@ -295,7 +304,7 @@ class ShapePrior:
 
 def spva(W: np.ndarray, V: np.ndarray | None = None, prior_frames: int = 10,
          weighting: str = 'pixel', prior_weight: float = 10.0, smoothness: float = 0.05,
-         low_rank: float = 10.0, rank: int = 4, iterations: int = 20, refresh: float = 0.0,
+         low_rank: float = 10.0, rank: int = 4, iterations: int = 10, refresh: float = 0.0,
          init: str | NRSfMResult = 'cdf') -> NRSfMResult:
     """SPVA on a whole sequence: the ``init`` batch method (any of ``reconstruct``'s, or a
     result of one on these tracks) gives the object-frame shapes that the prior (the

@@ -141,7 +141,7 @@ class StreamNRSfM:
                  dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01,
                  spva_prior_frames: int = 10, spva_weighting: str = 'pixel',
                  spva_prior_weight: float = 10.0, spva_smoothness: float = 0.05,
-                 spva_refresh: float = 0.0, spva_iterations: int = 20) -> None:
+                 spva_refresh: float = 0.0, spva_iterations: int = 10) -> None:
         if mode not in MODES:
             raise ValueError(f'mode={mode!r}: expected one of {MODES}')
         if solver is None and method not in BATCH_METHODS:    # a solver takes its own names
