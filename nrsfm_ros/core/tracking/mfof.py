@@ -247,8 +247,9 @@ class MFOFTracker:
         own = ((self.epoch * h * w + lin) % 2 ** 32).astype(np.uint32)
         self.ids = np.concatenate([self._carry_ids, own])
         self._mask_lin = np.flatnonzero(mask)
-        # a fixed strided sample of mask pixels for the per-frame coefficient fit
-        step = max(1, int(np.sqrt(self._mask_lin.size / 20000)))
+        # a fixed strided sample of at most ~20000 mask pixels for the per-frame coefficient
+        # fit (rounding the stride down fitted up to 80000: all of a 320x240 mask)
+        step = max(1, int(np.ceil(np.sqrt(self._mask_lin.size / 20000))))
         self._sample = np.flatnonzero((mask & (self._gx % step == 0) & (self._gy % step == 0))
                                       .ravel())
         if self.epoch == 0:
