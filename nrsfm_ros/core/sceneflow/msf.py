@@ -81,6 +81,22 @@ def highpass(gray: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(valid, g - mean, 0).astype(np.float32)
 
 
+def depth_noise(depth: np.ndarray) -> float:
+    """Robust estimate (m) of a depth image's noise sigma: the median absolute deviation of
+    each pixel from the mean of its 4 neighbours (where all five have depth), which on a
+    smooth surface is noise times sqrt(1.25).  0.0 when no pixel qualifies."""
+    z = np.asarray(depth, np.float32)
+    ok = np.isfinite(z)
+    zf = np.where(ok, z, 0).astype(np.float32)
+    k = np.array([[0, .25, 0], [.25, 0, .25], [0, .25, 0]], np.float32)
+    res = (zf - cv2.filter2D(zf, -1, k, borderType=cv2.BORDER_CONSTANT))[
+        cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                  borderValue=0) > 0]
+    if res.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(res - np.median(res))) / np.sqrt(1.25))
+
+
 def _check_K(K: np.ndarray) -> np.ndarray:
     K = np.asarray(K, np.float64)
     if K.shape != (3, 3) or not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -297,7 +313,10 @@ class MSFConfig:
     # the photometric term): every first-frame pixel's 3-D point in frame c, Gauss-Newton on
     # photometric + depth-along-the-ray residuals aggregated over a Gaussian window
     refine_iterations: int = 3
-    refine_window: float = 2.0       # px: Gaussian sigma of the window
+    refine_window: float = 3.0       # px: Gaussian sigma of the window
+    refine_depth_window: float = 0.7  # px: the depth term's window with noise-free depth (it
+                                      # widens to refine_window as the depth noise estimated
+                                      # in the first frame, depth_noise(), reaches depth_sigma)
     refine_prior: float = 0.1        # m: sigma of the prior towards the segment's rigid motion
 
     def check(self) -> None:
@@ -309,7 +328,7 @@ class MSFConfig:
                 raise ValueError(f'{name}={getattr(self, name)}: expected >= 1')
         for name in ('compactness', 'slic_depth_scale', 'photometric_sigma', 'depth_sigma',
                      'max_depth_residual', 'smooth_depth_edge', 'huber', 'refine_window',
-                     'refine_prior'):
+                     'refine_depth_window', 'refine_prior'):
             if not getattr(self, name) > 0:
                 raise ValueError(f'{name}={getattr(self, name)}: expected > 0')
         for name in ('photometric_weight', 'depth_weight', 'smoothness', 'damping', 'highpass'):
@@ -484,6 +503,7 @@ class MSF:
         # first-frame pixels with depth: flat indices, points (N, 3), photometric values (N,)
         # (the refinement works on their bounding box: slices, points, photometric values)
         self._pix0: tuple[tuple[slice, slice], np.ndarray, np.ndarray] | None = None
+        self._depth_noise = 0.0                   # m, of the first frame (depth_noise)
         self.reselections: list[int] = []
         self._frame = -1
 
@@ -503,6 +523,7 @@ class MSF:
             self._Y_in_ref = self._X0.copy()
             self._seg_of0 = self._ref.labels.copy()
             ok = np.isfinite(self._X0).all(-1)
+            self._depth_noise = depth_noise(z)
             if ok.any():
                 rad = int(np.ceil(2.5 * self.cfg.refine_window))
                 ys, xs = np.nonzero(ok.any(1))[0], np.nonzero(ok.any(0))[0]
@@ -756,6 +777,13 @@ class MSF:
         rad = int(np.ceil(2.5 * c.refine_window))
         hub = np.float32(c.huber)
         buf = np.empty((h, w, 9), np.float32)
+        bufD = np.empty((h, w, 9), np.float32)
+        # the depth term's window: narrow with clean depth (it fixes the point along its ray
+        # by itself, and a wide window there biases it where the surface bends along the ray),
+        # as wide as the photometric one once the estimated depth noise reaches depth_sigma
+        winD = float(np.clip(c.refine_window * self._depth_noise / c.depth_sigma,
+                             min(c.refine_depth_window, c.refine_window), c.refine_window))
+        radD = int(np.ceil(2.5 * winD))
         for _ in range(c.refine_iterations):
             P = X + D
             u, v, iz, inside = project(P)
@@ -783,11 +811,14 @@ class MSF:
             for i in range(3):
                 wJi, wJd = wI * JI[i], wD * JD[i]
                 for j in range(i, 3):
-                    np.add(wJi * JI[j], wJd * JD[j], out=buf[..., k])
+                    buf[..., k] = wJi * JI[j]
+                    bufD[..., k] = wJd * JD[j]
                     k += 1
-                np.add(tI * JI[i], tD * JD[i], out=buf[..., 6 + i])
+                buf[..., 6 + i] = tI * JI[i]
+                bufD[..., 6 + i] = tD * JD[i]
             agg = cv2.GaussianBlur(buf, (2 * rad + 1, 2 * rad + 1), c.refine_window
                                    ).astype(np.float64)
+            agg += cv2.GaussianBlur(bufD, (2 * radD + 1, 2 * radD + 1), winD)
             a00, a01, a02, a11, a12, a22 = (agg[..., i] for i in range(6))
             a00, a11, a22 = a00 + wp, a11 + wp, a22 + wp
             b = agg[..., 6:] + wp * Dr
