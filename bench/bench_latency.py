@@ -1,17 +1,21 @@
 """Per-frame processing latency of the tracker and of each reconstructor mode (issue 12 target:
 <= 50 ms per frame after start-up at 320x240 on 2 cores).
 
-    .venv/bin/python bench/bench_latency.py [--size 320x240] [--frames 40] [--json out.json]
+    .venv/bin/python bench/bench_latency.py [--size 320x240] [--frames 40]
+        [--modes window,online,batch] [--json out.json]
 
 A 30 deg flag render is fed frame by frame through the nodes' processors (no DDS): the tracker,
 then the reconstructor in every mode on the tracker's tracks.  'After start-up' excludes the
 frames before the first window is full; `batch` publishes nothing until its batch is full (60
 frames by default), so its per-frame cost is buffering only and its solve is the batch row of
-bench_pipeline.py.
+bench_pipeline.py.  ``--modes ''``: the tracker alone.  Next to the wall time (median, p95),
+the mean CPU time of the process per frame (``time.process_time``: every thread, not inflated
+by other work on the machine as the wall time is) and the frames per second of both.
 """
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -35,38 +39,54 @@ def main() -> None:
     p = parser(__doc__)
     p.add_argument('--size', default='320x240')
     p.add_argument('--frames', type=int, default=40)
+    p.add_argument('--modes', default=','.join(MODES),
+                   help="reconstructor modes after the tracker, comma-separated ('': none)")
     a = p.parse_args()
+    modes = [m for m in a.modes.split(',') if m]
+    for m in modes:
+        if m not in MODES:
+            p.error(f'--modes: {m!r} is not one of {", ".join(MODES)}')
     w, h = (int(v) for v in a.size.split('x'))
     fac = RosbagsFactory()
     seq = generate(SynthConfig(surface='flag', width=w, height=h, frames=a.frames,
                                camera_motion_deg=30))
     tracker = TrackerProcessor(fac)
-    recs = {m: ReconstructorProcessor(fac, ReconstructorParams(mode=m)) for m in MODES}
+    recs = {m: ReconstructorProcessor(fac, ReconstructorParams(mode=m)) for m in modes}
     info = img_io.make_camera_info(seq.K, w, h, fac, int(seq.stamps_ns[0]), 'cam')
     for r in recs.values():
         r.handle('camera_info', info)
-    ms: dict[str, list[float]] = {'tracker': [], **{m: [] for m in MODES}}
+    ms: dict[str, list[float]] = {'tracker': [], **{m: [] for m in modes}}
+    cpu: dict[str, list[float]] = {k: [] for k in ms}
     for f in range(a.frames):
         msg = img_io.array_to_image(seq.images[f], 'rgb8', fac, int(seq.stamps_ns[f]), 'cam')
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = tracker.handle('image', msg)
         ms['tracker'].append(1e3 * (time.perf_counter() - t))
+        cpu['tracker'].append(1e3 * (time.process_time() - c))
         tracks = next(o[2] for o in out if o[0] == 'nrsfm/tracks')
         for m, r in recs.items():
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             r.handle('tracks', tracks)
             ms[m].append(1e3 * (time.perf_counter() - t))
+            cpu[m].append(1e3 * (time.process_time() - c))
     start = ReconstructorParams().window + 1
     rows = []
     for name, v in ms.items():
-        after = np.array(v[1:] if name == 'tracker' else v[start:])
+        first = 1 if name == 'tracker' else start
+        after, after_cpu = np.array(v[first:]), np.array(cpu[name][first:])
         rows.append({'stage': name if name == 'tracker' else f'reconstructor {name}',
                      'median_ms': float(np.median(after)),
                      'p95_ms': float(np.percentile(after, 95)),
-                     'max_ms': float(max(v))})
-    table(['stage', 'median ms/frame', 'p95', 'max over the stream'],
-          [[r['stage'], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['max_ms']:.0f}"]
+                     'max_ms': float(max(v)),
+                     'cpu_mean_ms': float(after_cpu.mean()),
+                     'fps_wall': 1e3 / float(after.mean()),
+                     'fps_cpu': 1e3 / max(float(after_cpu.mean()), 1e-9)})
+    table(['stage', 'median ms/frame', 'p95', 'max over the stream', 'CPU ms/frame (mean)',
+           'frames/s (wall)', 'frames/s (CPU)'],
+          [[r['stage'], f"{r['median_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['max_ms']:.0f}",
+            f"{r['cpu_mean_ms']:.1f}", f"{r['fps_wall']:.1f}", f"{r['fps_cpu']:.1f}"]
            for r in rows])
+    print(f'load average {os.getloadavg()[0]:.2f}')
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
 
