@@ -295,7 +295,7 @@ class MSFConfig:
     solve_width: int = 160           # finest pyramid level solved: about this wide (px)
     levels: int = 3                  # pyramid levels solved, coarse to fine
     global_levels: int = 0           # the coarsest ones solve one motion increment for all
-    iterations: tuple[int, ...] = (4, 3, 3)   # Gauss-Newton steps per level, coarse to fine
+    iterations: tuple[int, ...] = (3, 2, 2)   # Gauss-Newton steps per level, coarse to fine
     photometric_weight: float = 1.0
     photometric_sigma: float = 2.0   # intensity units (of the high-passed image)
     highpass: float = 3.0            # px: the photometric terms compare I - its local mean over
