@@ -224,8 +224,8 @@ def jitter_variance(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray,
     if w < 3:
         return None
     common = clouds[0][1]
-    for _, i in clouds[1:]:
-        common = np.intersect1d(common, i)
+    for _, i in clouds[1:]:     # unique ids (checked clouds): no np.unique pass per cloud
+        common = np.intersect1d(common, i, assume_unique=True)
     if common.size > max_points > 0:          # an even subset of the ids: plenty of samples
         common = common[::-(-common.size // max_points)]
     n = common.size
