@@ -4,7 +4,7 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--true-cameras] [--live] [--json out.json]
+        [--true-cameras] [--periodic N] [--live] [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -27,6 +27,8 @@ frames) of
   1.2x visible), printed as a second table.
 A pipeline row scores only the frames and points it published that match ground truth (by stamp
 and track id); its static/flat baselines are recomputed on exactly those points (`static*`).
+``--periodic N``: every case's deformation repeats with a period of N frames while the camera
+keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
 """
 from __future__ import annotations
 
@@ -114,6 +116,15 @@ def true_camera_bound(seq) -> tuple[float, float]:
     return e(np.einsum('fij,jp->fpi', R, S0)), e(np.einsum('fij,fjp->fpi', R, S))
 
 
+def case_config(surface: str, size: tuple[int, int], frames: int, motion: float, amp: float,
+                occluder: bool, periodic: int = 0) -> SynthConfig:
+    """The render of one sweep case (seed 0); ``periodic`` > 0: the deformation's period in
+    frames."""
+    return SynthConfig(surface=surface, width=size[0], height=size[1], frames=frames, seed=0,
+                       camera_motion_deg=motion, amplitude=amp, occluder=occluder,
+                       period_frames=periodic)
+
+
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False) -> dict:
     seq = generate(cfg)
@@ -190,26 +201,22 @@ def main() -> None:
     p.add_argument('--true-cameras', action='store_true',
                    help='also the observability bound: the ground-truth tracks with the true '
                    'cameras given (rigid shape, bmm shapes)')
+    p.add_argument('--periodic', type=int, default=0,
+                   help='deformation period in frames (0: the usual non-repeating motion)')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
     a = p.parse_args()
     w, h = (int(v) for v in a.size.split('x'))
     modes = [m for m in a.modes.split(',') if m]
     gt_methods = [m for m in a.gt_methods.split(',') if m]
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix='bench_pipeline_'))
-    fields = {f.name for f in SynthConfig.__dataclass_fields__.values()}
     rows = []
     for surface in a.surfaces.split(','):
         for motion in (float(v) for v in a.motions.split(',')):
             for amp in (float(v) for v in a.amplitudes.split(',')):
                 for occ in a.occluder.split(','):
-                    kw = dict(surface=surface, width=w, height=h, frames=a.frames, seed=0,
-                              camera_motion_deg=motion, amplitude=amp)
-                    if occ == 'on':
-                        if 'occluder' not in fields:
-                            continue
-                        kw['occluder'] = True
-                    row = run_case(SynthConfig(**kw), modes, gt_methods, a.live, work,
-                                   a.true_cameras)
+                    cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
+                                      a.periodic)
+                    row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)

@@ -1,5 +1,5 @@
 """bench/bench_pipeline.py --true-cameras: the observability bound (the ground-truth tracks with
-the true cameras given) on small renders with known answers."""
+the true cameras given) on small renders with known answers; --periodic: the cases' renders."""
 from __future__ import annotations
 
 import importlib
@@ -36,3 +36,24 @@ def test_true_camera_bound_is_exact_on_a_rigid_surface_and_sees_deformation(benc
     base = score(shapes_as_clouds(seq.S, seq.track_ids), seq).summary()
     r2, _ = bench.true_camera_bound(seq)
     assert r2 > r and r2 > 0.5 * base['static']
+
+
+def test_periodic_cases_repeat_their_deformation_while_the_camera_moves(bench):
+    """--periodic N: the object-frame surface at frame N is the one at frame 0 (the state
+    recurs), the camera is elsewhere; without it the surface does not come back."""
+    import numpy as np
+
+    def object_frame(seq, f: int) -> np.ndarray:
+        T = np.linalg.inv(seq.T_camera_world[f])
+        return seq.S[f] @ T[:3, :3].T + T[:3, 3]
+    for periodic in (8, 0):
+        cfg = bench.case_config('flag', (96, 72), 12, 30.0, 2.0, False, periodic)
+        assert cfg.period_frames == periodic
+        seq = generate(cfg)
+        gap = np.abs(object_frame(seq, 8) - object_frame(seq, 0)).max()
+        extent = np.ptp(object_frame(seq, 0), axis=0).max()
+        if periodic:
+            assert gap < 1e-6 * extent
+            assert np.abs(seq.T_camera_world[8] - seq.T_camera_world[0]).max() > 1e-3
+        else:
+            assert gap > 1e-3 * extent
