@@ -227,7 +227,7 @@ MESSAGES = 11_500     # every 10th valid: >= 10,000 malformed
 
 def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
     rng = np.random.default_rng(16)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     tracker = TrackerProcessor(FAC, TrackerParams(rank=2, window=4, publish_flow=False))
     rec = ReconstructorProcessor(FAC, ReconstructorParams(mode='window', window=4, iterations=2,
                                                           publish_depth=True))
@@ -286,9 +286,11 @@ def test_fuzz_every_field_no_uncaught_exception_every_message_counted():
     reg.handle('reference', points_msg(rng, 0))
     assert len(reg.handle('points', points_msg(rng, 1))) == 4
     assert len(flow.handle('points', points_msg(rng, 10 ** 6))) == 2
-    elapsed = time.perf_counter() - t0
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     failed = {k: v for p in procs.values() for k, v in p.stats.errors.items()
               if k.split(':')[1][:1].isupper()}     # contained exceptions, by type
-    print(f'fuzz: {sent} malformed + {MESSAGES - sent} valid messages in {elapsed:.1f} s; '
-          f'contained exceptions {failed}')
-    assert elapsed < 60
+    print(f'fuzz: {sent} malformed + {MESSAGES - sent} valid messages in {elapsed:.1f} s '
+          f'({cpu:.1f} s CPU); contained exceptions {failed}')
+    # no message costs much: CPU time, not wall time, which a shared machine stretches (30 s
+    # CPU in 49 s at load 2.5; 134 s wall at load ~8 failed the former wall-time bound)
+    assert cpu < 60
