@@ -168,6 +168,10 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         if row['occluder']:
             row[f'{mode}_occluded'], row[f'{mode}_visible'] = occluded_split(clouds, seq)
         row[f'{mode}_frames'] = rep.outputs.get('nrsfm/points', 0)
+        st = rep.status.get('reconstructor', {})   # auto's last choice; dspr's compression
+        row[f'{mode}_method'] = st.get('last_method', '')
+        if 'compression_ratio' in st:
+            row[f'{mode}_compression'] = float(st['compression_ratio'])
         row[f'{mode}_failures'] = len(rep.failures)
         outs.append(row[f'{mode}_frames'])
     if live:
@@ -249,6 +253,13 @@ def main() -> None:
         print()
         table(['surface', 'cam deg', 'amp', 'mode', 'e3D', 'occluded', 'visible',
                'occluded/visible'], occ_rows)
+    comp = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m,
+             f"{r[f'{m}_compression']:.1f}", f4(r[m])]
+            for r in rows for m in modes if f'{m}_compression' in r]
+    if comp:
+        print()
+        table(['surface', 'cam deg', 'amp', 'mode', 'compression (frames / stored states)',
+               'e3D'], comp)
     ratios = np.array([r['ratio_pipeline'] for r in rows])
     if rows:
         print(f'\npipeline / static: median {np.nanmedian(ratios):.2f}, worst '
