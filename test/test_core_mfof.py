@@ -266,8 +266,10 @@ def test_recapture_keeps_tracks_on_a_face_under_60_deg_camera_motion():
     chain = np.linalg.norm(_chained(grey, seq.W[:2, ib].T) - gt, axis=-1)
     kept = float((vis[1:][V[1:]] > 0.5).mean())
     # measured: last third 1.43 px (chained 3.14 px; recapture_margin=0 3.05 px), all frames
-    # 0.92 px (1.46 px), kept 0.81 (0.79)
-    assert err[late].mean() < 2.0 and err[late].mean() < 0.6 * chain[late].mean()
+    # 0.92 px (1.46 px), kept 0.81 (0.79); 1.81 px on another machine (the tracker is chaotic
+    # on such views: a last-bit difference grows to pixels within ~8 frames), so the bounds sit
+    # between that and the tracker without recapture
+    assert err[late].mean() < 2.4 and err[late].mean() < 0.75 * chain[late].mean()
     assert err[1:][V[1:]].mean() < 1.2 and kept > 0.78
 
 
