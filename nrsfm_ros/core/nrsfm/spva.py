@@ -238,7 +238,7 @@ class ShapePrior:
         X = X.copy()
         GX = D @ X
         if self._duals is not None:            # warm start: the last solve's scaled duals
-            U, U2 = (a.copy() for a in self._duals)
+            U, U2 = self._duals                # (its own buffers, no one else holds them)
             Z = X + U
             Q = GX + U2
         else:
