@@ -25,12 +25,21 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument('--lr', type=float, default=None, help='peak learning rate (default 2e-3)')
     p.add_argument('--width', type=int, default=None,
                    help='channels of the first encoder stage (default 24)')
+    p.add_argument('--w-align', type=float, default=None,
+                   help='weight of the metric-B loss (per-sample Procrustes + scale; default 0)')
+    p.add_argument('--w-iso', type=float, default=None,
+                   help='weight of the isometry (smoothness) loss (default 1)')
+    p.add_argument('--w-contour', type=float, default=None,
+                   help='weight of the contour (silhouette) loss (default 1e-3)')
+    p.add_argument('--augment', action='store_true', default=None,
+                   help='mirror left-right and permute / scale colours during training')
     p.add_argument('--threads', type=int, default=None, help='PyTorch threads (default 2)')
     p.add_argument('--max-steps', type=int, default=None,
                    help='stop after this many optimiser steps (default 0: all epochs)')
     p.add_argument('--init', default=None,
-                   help='warm start from the hdmnet.pt of an earlier run (its hdmnet.json is '
-                   'kept in the new record)')
+                   help='warm start from the hdmnet.pt of an earlier run or an exported '
+                   'hdmnet.onnx (same width; BatchNorm then frozen); the hdmnet.json beside it '
+                   'is kept in the new record')
 
 
 def train_command(args: argparse.Namespace, argv: list[str]) -> int:
@@ -40,7 +49,9 @@ def train_command(args: argparse.Namespace, argv: list[str]) -> int:
         raise ToolError(f'train-hdmnet needs PyTorch (pip install .[learning]): {err}') from err
     cfg = T.main_config(seed=args.seed, states=args.states, test_states=args.test_states,
                         epochs=args.epochs, batch=args.batch, lr=args.lr, width=args.width,
-                        threads=args.threads, max_steps=args.max_steps, init=args.init)
+                        threads=args.threads, max_steps=args.max_steps, init=args.init,
+                        w_align=args.w_align, w_iso=args.w_iso, w_contour=args.w_contour,
+                        augment=args.augment)
     meta = T.train(cfg, args.out, command=['nrsfm-ros', *argv],
                    log=lambda s: print(s, flush=True))
     m = meta['metrics']

@@ -227,6 +227,68 @@ def test_training_smoke_few_steps_exports_a_matching_onnx(tmp_path):
     assert sil[T.SIL // 2, T.SIL // 2] > 0.9 and sil[0, 0] < 0.05
 
 
+def test_training_warm_start_from_the_shipped_onnx_and_the_metric_b_loss(tmp_path):
+    """``init`` may be an exported hdmnet.onnx: the loaded network computes what the file
+    computes; the metric-B loss is ``e3d_per_frame``; the mirror augmentation keeps the
+    render's geometry (a mirrored render of the mirrored grid is the mirrored image)."""
+    torch = pytest.importorskip('torch')
+    pytest.importorskip('onnx')
+    from nrsfm_ros.learning import hdmnet_train as T
+    meta = json.loads(DEFAULT_MODEL.with_suffix('.json').read_text())
+    tc = meta['train_config']
+    net = T.HDMNet(np.zeros((H.GRID, H.GRID, 3)), np.zeros((tc['n_basis'], H.GRID ** 2 * 3)),
+                   width=tc['width'], pool=4)
+    net(torch.zeros(1, 3, H.INPUT_SIZE, H.INPUT_SIZE))
+    T.load_onnx_weights(net, DEFAULT_MODEL)
+    net.eval()
+    x = np.random.default_rng(1).uniform(0, 1, (1, 3, H.INPUT_SIZE, H.INPUT_SIZE))
+    x = x.astype(np.float32)
+    with torch.no_grad():
+        ref = net(torch.from_numpy(x)).numpy()[0]
+    np.testing.assert_allclose(HDMNetModel().raw(x), ref, atol=1e-4)
+    wrong = T.HDMNet(np.zeros((H.GRID, H.GRID, 3)), np.zeros((tc['n_basis'], H.GRID ** 2 * 3)),
+                     width=tc['width'] + 8, pool=4)
+    wrong(torch.zeros(1, 3, H.INPUT_SIZE, H.INPUT_SIZE))
+    with pytest.raises(ValueError, match='width'):
+        T.load_onnx_weights(wrong, DEFAULT_MODEL)
+    rng = np.random.default_rng(2)
+    G = rng.normal(size=(3, H.GRID, H.GRID, 3))
+    P = G + 0.2 * rng.normal(size=G.shape)
+    P[1] = -2 * P[1] + 5                   # reflection, scale and shift are free in metric B
+    got = T.aligned_error(torch.from_numpy(P), torch.from_numpy(G)).numpy()
+    np.testing.assert_allclose(got, H.e3d_per_frame(P.reshape(3, -1, 3), G.reshape(3, -1, 3)),
+                               rtol=1e-6)
+    # the mirror: render the mirrored grid with the mirrored texture = the mirrored image
+    d = D.make_dataset(D.HDMDataConfig(split='test', samples=1, seed=3, noise=0))
+    g = d['grids'][0]
+    tex = D.texture('checker', 5)
+    img, mask = D.render(g, tex, 'front', 112)
+    gen = torch.Generator().manual_seed(0)
+    xt = torch.from_numpy(img.transpose(2, 0, 1)[None] / 255.0).float()
+    flips = 0
+    for _ in range(8):
+        xa, ga, ma = T.augment_batch(xt, torch.from_numpy(g[None]),
+                                     torch.from_numpy(mask[None].astype(np.float32)), gen)
+        flipped = not np.allclose(ga[0].numpy(), g)
+        flips += flipped
+        img_m, mask_m = D.render(ga[0].numpy(), np.ascontiguousarray(tex[:, ::-1]) if flipped
+                                 else tex, 'front', 112)
+        assert (mask_m == (ma[0].numpy() > 0.5)).mean() > 0.999
+        # each channel is a scaled channel of the augmented grid's render
+        a = xa[0].numpy().reshape(3, -1)
+        b = img_m.reshape(-1, 3).T.astype(np.float64)
+        corr = np.corrcoef(np.concatenate([a, b]))[:3, 3:]
+        assert (corr.max(axis=1) > 0.99).all()
+    assert 0 < flips < 8
+    cfg = T.TrainConfig(states=16, test_states=4, epochs=1, batch=8, max_steps=2, width=16,
+                        w_align=1.0, augment=True, init=str(DEFAULT_MODEL))
+    meta = T.train(cfg, tmp_path, command=['nrsfm-ros', 'train-hdmnet', 'smoke'],
+                   log=lambda s: None)
+    assert meta['init']['sha256'] == json.loads(
+        DEFAULT_MODEL.with_suffix('.json').read_text())['sha256']
+    assert meta['history'][0]['align'] > 0
+
+
 def test_reconstructor_node_mode_hdmnet_over_rclpy(rclpy_context):
     """The live node in mode hdmnet: camera_info and images in over real rclpy -> one
     nrsfm/points and one nrsfm/depth per image, same stamps, the surface where it is (metres)."""

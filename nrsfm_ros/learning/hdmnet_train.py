@@ -50,9 +50,12 @@ class TrainConfig:
     w_shape: float = 4.0        # weight of the 3-D loss on the centred grids (the shape)
     w_iso: float = 1.0
     w_contour: float = 1e-3
+    w_align: float = 0.0        # weight of metric B itself (per-sample Procrustes + scale)
+    augment: bool = False       # mirror left-right (grid columns too), permute / scale colours
     threads: int = 2
     max_steps: int = 0          # stop after this many steps (0: all epochs; smoke tests)
-    init: str = ''              # warm start: hdmnet.pt of an earlier run (its record is kept)
+    init: str = ''              # warm start: hdmnet.pt of an earlier run, or an exported
+    #                             hdmnet.onnx (BatchNorm then frozen); its record is kept
 
     def validate(self) -> None:
         for name in ('states', 'test_states', 'epochs', 'batch', 'width', 'threads', 'pool',
@@ -61,8 +64,8 @@ class TrainConfig:
                 raise ValueError(f'{name}={getattr(self, name)}: expected >= 1')
         if not self.lr > 0:
             raise ValueError(f'lr={self.lr}: expected > 0')
-        if min(self.w_shape, self.w_iso, self.w_contour, self.max_steps) < 0:
-            raise ValueError('w_shape, w_iso, w_contour, max_steps: expected >= 0')
+        if min(self.w_shape, self.w_iso, self.w_contour, self.w_align, self.max_steps) < 0:
+            raise ValueError('w_shape, w_iso, w_contour, w_align, max_steps: expected >= 0')
 
 
 def _conv(i: int, o: int, stride: int = 1) -> nn.Sequential:
@@ -154,6 +157,24 @@ def soft_silhouette(pred: torch.Tensor) -> torch.Tensor:
     return 1 - torch.exp(-dens)
 
 
+def aligned_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Per-sample metric B (B,) of grids (B, n, n, 3) against the truth: the centred
+    prediction Procrustes-aligned (reflections allowed) and scaled onto the centred truth,
+    ||A - G|| / ||G||, as ``core.hdmnet.e3d_per_frame``.  The rotation and scale are the
+    optimum's and carry no gradient (at the optimum the loss is stationary in them, so the
+    gradient is that of the minimum itself)."""
+    P = pred.reshape(pred.shape[0], -1, 3)
+    G = gt.reshape(gt.shape[0], -1, 3)
+    Pc, Gc = P - P.mean(1, keepdim=True), G - G.mean(1, keepdim=True)
+    with torch.no_grad():
+        U, sig, Vt = torch.linalg.svd((Pc.transpose(1, 2) @ Gc).double())
+        R = (U @ Vt).to(P.dtype)
+        scale = (sig.sum(1) / (Pc.double() ** 2).sum((1, 2)).clamp(min=1e-30)).to(P.dtype)
+    A = scale[:, None, None] * (Pc @ R)
+    num = ((A - Gc) ** 2).sum((1, 2))
+    return torch.sqrt(num / (Gc ** 2).sum((1, 2)).clamp(min=1e-30) + 1e-12)
+
+
 def losses(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, kernel: torch.Tensor,
            cfg: TrainConfig) -> dict[str, torch.Tensor]:
     l3d = ((pred - gt) ** 2).sum(-1).mean()
@@ -162,8 +183,31 @@ def losses(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, kernel: tor
     liso = isometry_loss(pred, kernel)
     lcon = ((soft_silhouette(pred) - mask) ** 2).mean() if cfg.w_contour > 0 \
         else torch.zeros(())
-    return {'total': l3d + cfg.w_shape * lshape + cfg.w_iso * liso + cfg.w_contour * lcon,
-            '3d': l3d, 'shape': lshape, 'iso': liso, 'contour': lcon}
+    lal = aligned_error(pred, gt).mean() if cfg.w_align > 0 else torch.zeros(())
+    return {'total': l3d + cfg.w_shape * lshape + cfg.w_iso * liso + cfg.w_contour * lcon
+            + cfg.w_align * lal, '3d': l3d, 'shape': lshape, 'iso': liso, 'contour': lcon,
+            'align': lal}
+
+
+def augment_batch(x: torch.Tensor, g: torch.Tensor, m: torch.Tensor, gen: torch.Generator
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random label-preserving changes of a batch: half the samples mirrored left-right (the
+    image, the silhouette, x -> -x of the nodes and the grid's columns reversed, so that the
+    material s = 0 edge stays on the left as in the renders; the canonical camera's principal
+    point is the image centre), every sample's colour channels permuted and scaled by
+    0.8-1.2.  No vertical mirror: it would turn training lights into the held-out lower ones."""
+    B = x.shape[0]
+    flip = torch.rand(B, generator=gen) < 0.5
+    x, g, m = x.clone(), g.clone(), m.clone()
+    x[flip] = x[flip].flip(-1)
+    m[flip] = m[flip].flip(-1)
+    gf = g[flip].flip(2)
+    gf[..., 0] = -gf[..., 0]
+    g[flip] = gf
+    perm = torch.argsort(torch.rand(B, 3, generator=gen), dim=1)
+    x = x[torch.arange(B)[:, None], perm]
+    gain = 0.8 + 0.4 * torch.rand(B, 3, 1, 1, generator=gen)
+    return (x * gain).clamp(0, 1), g, m
 
 
 def _masks_small(masks: np.ndarray) -> np.ndarray:
@@ -261,11 +305,16 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
     m_all = torch.from_numpy(_masks_small(tr['masks']))
     model(x_all[:2])                                 # materialise the lazy layer
     init_record: dict[str, Any] | None = None
+    freeze_bn = False
     if cfg.init:
         init = Path(cfg.init)
         if not init.is_file():
             raise FileNotFoundError(f'init={cfg.init}: no such checkpoint')
-        model.load_state_dict(torch.load(init)['state_dict'])
+        if init.suffix == '.onnx':
+            load_onnx_weights(model, init)
+            freeze_bn = True
+        else:
+            model.load_state_dict(torch.load(init)['state_dict'])
         rec = init.with_suffix('.json')
         init_record = {'path': str(init), 'sha256': hashlib.sha256(init.read_bytes()).hexdigest(),
                        'record': json.loads(rec.read_text()) if rec.is_file() else None}
@@ -278,8 +327,13 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=total,
                                                 pct_start=0.15)
     kernel = _gauss_kernel()
+    gen = torch.Generator().manual_seed(cfg.seed)
     step, t1, history = 0, time.perf_counter(), []
     model.train()
+    if freeze_bn:                        # the ONNX weights hold BatchNorm folded in
+        for mod in model.modules():
+            if isinstance(mod, nn.BatchNorm2d):
+                mod.eval()
     while step < total:
         order = rng.permutation(n)
         acc: dict[str, float] = {}
@@ -287,7 +341,10 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
             if step >= total:
                 break
             idx = torch.from_numpy(order[b * cfg.batch:(b + 1) * cfg.batch])
-            L = losses(model(x_all[idx]), g_all[idx], m_all[idx], kernel, cfg)
+            xb, gb, mb = x_all[idx], g_all[idx], m_all[idx]
+            if cfg.augment:
+                xb, gb, mb = augment_batch(xb, gb, mb, gen)
+            L = losses(model(xb), gb, mb, kernel, cfg)
             opt.zero_grad()
             L['total'].backward()
             opt.step()
@@ -334,6 +391,43 @@ def train(cfg: TrainConfig, out: str | Path, command: list[str] | None = None,
             'history': history, 'metrics': metrics}
     (out / 'hdmnet.json').write_text(json.dumps(meta, indent=1) + '\n')
     return meta
+
+
+def load_onnx_weights(model: HDMNet, path: Path) -> None:
+    """Load an exported hdmnet.onnx (``export_onnx``: BatchNorm folded into the convolutions)
+    into ``model`` (same width and pool; the lazy layer materialised): each convolution takes
+    the folded weights and its BatchNorm becomes the identity plus the folded bias (running
+    mean 0, variance 1 - eps, scale 1).  Train it with the BatchNorm layers in eval mode."""
+    import onnx
+    from onnx import numpy_helper
+    g = onnx.load(str(path)).graph
+    init = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+    convs = [n for n in g.node if n.op_type == 'Conv']
+    pairs = [(m[0], m[1]) for m in (list(mod.children()) for mod in model.enc.modules()
+                                    if isinstance(mod, nn.Sequential))
+             if len(m) >= 2 and isinstance(m[0], nn.Conv2d) and isinstance(m[1], nn.BatchNorm2d)]
+    if len(convs) != len(pairs):
+        raise ValueError(f'{path}: {len(convs)} convolutions, the model has {len(pairs)}')
+    with torch.no_grad():
+        for node, (conv, bn) in zip(convs, pairs):
+            w = torch.as_tensor(np.array(init[node.input[1]]))
+            if w.shape != conv.weight.shape:
+                raise ValueError(f'{path}: convolution {tuple(w.shape)} does not fit '
+                                 f'{tuple(conv.weight.shape)} (another width?)')
+            conv.weight.copy_(w)
+            b = init[node.input[2]] if len(node.input) > 2 else np.zeros(w.shape[0], np.float32)
+            bn.weight.fill_(1.0)
+            bn.bias.copy_(torch.as_tensor(np.array(b)))
+            bn.running_mean.zero_()
+            bn.running_var.fill_(1.0 - bn.eps)
+        sd = model.state_dict()
+        for k in ('code.1.weight', 'code.1.bias', 'code.3.weight', 'code.3.bias',
+                  'decoder.weight', 'decoder.bias'):
+            v = torch.as_tensor(np.array(init[k]))
+            if v.shape != sd[k].shape:
+                raise ValueError(f'{path}: {k} {tuple(v.shape)} does not fit '
+                                 f'{tuple(sd[k].shape)}')
+            sd[k].copy_(v)
 
 
 def export_onnx(model: HDMNet, path: Path, pool: int) -> None:
