@@ -505,3 +505,34 @@ def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
     res2 = auto_solve(W2, np.ones((60, 300)))
     assert res2.method == 'bmm'
     assert res2.residual_px < 1e-3 * reconstruct(W2, method='rigid').residual_px
+
+
+def test_auto_decides_bmm_against_rigid_on_a_spread_subset(monkeypatch):
+    """Over DECISION_TRACKS tracks the bmm / rigid decision runs on a spread subset and the full
+    bmm solve only where bmm is taken: the same choices as on every track, and the bmm result
+    covers every track."""
+    import importlib
+    bmm_mod = importlib.import_module('nrsfm_ros.core.nrsfm.bmm')
+    stream = importlib.import_module('nrsfm_ros.core.nrsfm.stream')
+    monkeypatch.setattr(stream, 'DECISION_TRACKS', 100)
+    sizes = []
+    real = bmm_mod.bmm
+
+    def counted(W, V=None, **kw):
+        sizes.append(W.shape[1])
+        return real(W, V, **kw)
+    monkeypatch.setattr(bmm_mod, 'bmm', counted)
+    rng = np.random.default_rng(0)
+    F, P = 40, 400
+    X = rng.normal(size=(3, P)) * [[1.0], [1.0], [0.6]]
+    ang = np.stack([np.linspace(0, np.radians(8), F), np.linspace(0, np.radians(20), F)], 1)
+    S = np.einsum('fij,jp->fpi', Rotation.from_euler('xy', ang).as_matrix(), X)
+    W = S[:, :, :2].transpose(0, 2, 1).reshape(2 * F, P) + 0.01 * rng.normal(size=(2 * F, P))
+    res = stream.auto_solve(W, np.ones((F, P)))
+    assert res.method == 'rigid' and res.S.shape == (F, P, 3)
+    assert sizes == [100]                       # the full bmm solve was never paid
+    sizes.clear()
+    W2, _, _ = low_rank_sequence(K=3, F=60, P=300)
+    res2 = stream.auto_solve(W2, np.ones((60, 300)))
+    assert res2.method == 'bmm' and res2.S.shape == (60, 300, 3)
+    assert sizes == [100, 300]

@@ -235,10 +235,12 @@ def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.
     negligible otherwise; the prior is a fixed point on exact data.  Without one, a 1e-9 ridge
     keeps tracks seen in too few frames near the centroid instead of arbitrary."""
     sR = R2 * scale[:, None, None]  # F x 2 x 3
+    F, P = V.shape
     G = np.einsum('fki,fkj->fij', sR, sR)
-    A = np.einsum('fp,fij->pij', V, G)
-    Wf = Wc.reshape(-1, 2, Wc.shape[1])
-    b = np.einsum('fp,fki,fkp->pi', V, sR, Wf)
+    # the two sums over frames as matrix products (BLAS; ~10x the einsums at 10k tracks)
+    A = (V.T @ G.reshape(F, 9)).reshape(P, 3, 3)
+    Wv = Wc.reshape(F, 2, P) * V[:, None, :]
+    b = (sR.transpose(2, 0, 1).reshape(3, 2 * F) @ Wv.reshape(2 * F, P)).T
     if prior is None:
         A = A + 1e-9 * float(np.trace(G.mean(axis=0))) * np.eye(3)
     else:

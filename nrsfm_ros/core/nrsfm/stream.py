@@ -67,6 +67,10 @@ BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above
 #   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
 #   e3D 0.08-0.18 there against rigid's 0.025-0.067); the cap at 12 deg 0.24 (bmm 0.20, rigid
 #   0.27); the mocap sets of ../shared/data/nrsfm 0.00-0.26 (face 0.26, the rest <= 0.12).
+DECISION_TRACKS = 2000    # auto decides bmm against rigid on at most this many spread tracks:
+#   the ratio on 2000 of ~5k ground-truth tracks of the 256x192 renders is within 3% of the
+#   full one (face 30 deg 0.338 / 0.341, 0.699 / 0.691 occluded, 60 deg 0.585 / 0.585; cap
+#   0.561 / 0.550, 0.694 / 0.693; flag 0.898 / 0.901; sheet 0.302 / 0.298) at 2-3x less time
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
@@ -119,15 +123,23 @@ def auto_solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
     leaves: its per-frame shapes then fit what the rigid shape cannot by depths the camera
     motion does not observe (or its fill of hidden tracks failed), and rigid is taken."""
     from .bmm import bmm
+    from .extend import spread_subset
     from .planar import planar, rigid_residual, safe_rigid
     rig = safe_rigid(W, V)
     res = planar(W, V, rigid_check=rig)
     if res.converged:
         return res
-    res = bmm(W, V)
-    if rig is not None and res.residual_px > BMM_RIGID_RATIO * rigid_residual(rig):
+    if rig is None:
+        return bmm(W, V)
+    # bmm against rigid is decided on a spread subset of the tracks (the residual ratio is a
+    # mean over tracks): the full bmm solve is only paid where bmm is taken
+    idx = spread_subset(V.shape[1], DECISION_TRACKS)
+    sub = idx.size < V.shape[1]
+    trial = bmm(W[:, idx], V[:, idx]) if sub else bmm(W, V)
+    base = rigid_residual(safe_rigid(W[:, idx], V[:, idx]) if sub else rig)
+    if trial.residual_px > BMM_RIGID_RATIO * base:
         return rig
-    return res
+    return bmm(W, V) if sub else trial
 
 
 class StreamNRSfM:
