@@ -4,7 +4,7 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--true-cameras] [--periodic N] [--live] [--json out.json]
+        [--true-cameras] [--periodic N] [--live] [--set name=value ...] [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -29,6 +29,8 @@ A pipeline row scores only the frames and points it published that match ground 
 and track id); its static/flat baselines are recomputed on exactly those points (`static*`).
 ``--periodic N``: every case's deformation repeats with a period of N frames while the camera
 keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
+``--set name=value``: reconstructor parameters (YAML values, as on the node) for the pipeline
+rows and ``stream(GT)``, e.g. ``--set reject_outliers=false``.
 """
 from __future__ import annotations
 
@@ -36,7 +38,9 @@ import json
 import shutil
 import sys
 import tempfile
+import inspect
 import time
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,10 +55,21 @@ from nrsfm_ros.evaluation import (read_clouds, score, shapes_as_clouds,  # noqa:
                                   stream_on_tracks)
 from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
+from nrsfm_ros.core.nrsfm.stream import StreamNRSfM  # noqa: E402
 from nrsfm_ros.params import ReconstructorParams  # noqa: E402
 from nrsfm_ros.pipeline import process_bag  # noqa: E402
 
 GT_KW = {'lowrank': {'rank': 3}}
+STREAM_ARGS = set(inspect.signature(StreamNRSfM).parameters)
+
+
+def stream_overrides(rec: ReconstructorParams) -> dict:
+    """The parameters of ``rec`` that differ from the defaults, as ``make_stream`` overrides
+    (``mode`` excluded: ``stream(GT)`` is the default mode's stream)."""
+    base = ReconstructorParams()
+    return {f.name: getattr(rec, f.name) for f in fields(rec)
+            if f.name != 'mode' and getattr(rec, f.name) != getattr(base, f.name)
+            and f.name in STREAM_ARGS}
 
 
 def camera_range_deg(T: np.ndarray) -> float:
@@ -126,7 +141,9 @@ def case_config(surface: str, size: tuple[int, int], frames: int, motion: float,
 
 
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
-             work: Path, true_cameras: bool = False) -> dict:
+             work: Path, true_cameras: bool = False,
+             rec: ReconstructorParams | None = None) -> dict:
+    rec = rec or ReconstructorParams()
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
                  'amplitude': cfg.amplitude, 'occluder': bool(getattr(cfg, 'occluder', False)),
@@ -145,7 +162,8 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         row[f'gt_{m}_s'] = time.perf_counter() - t
     if true_cameras:
         row['truecam_rigid'], row['truecam_bmm'] = true_camera_bound(seq)
-    st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K), seq).summary()
+    st = score(stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K,
+                                **stream_overrides(rec)), seq).summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
     if case.exists():
@@ -160,7 +178,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     for mode in modes:
         t = time.perf_counter()
         rep = process_bag(case / 'tracks', case / mode, stages=['reconstructor'], progress=False,
-                          params={'reconstructor': ReconstructorParams(mode=mode)})
+                          params={'reconstructor': replace(rec, mode=mode)})
         row[f'{mode}_s'] = time.perf_counter() - t
         clouds = read_clouds(case / mode, seq.stamps_ns)
         s = score(clouds, seq).summary()
@@ -208,7 +226,12 @@ def main() -> None:
     p.add_argument('--periodic', type=int, default=0,
                    help='deformation period in frames (0: the usual non-repeating motion)')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
+    p.add_argument('--set', nargs='*', default=[], metavar='NAME=VALUE',
+                   help='reconstructor parameters (as on the node, YAML values)')
     a = p.parse_args()
+    import yaml
+    rec = ReconstructorParams().updated({k: yaml.safe_load(v) for k, v in
+                                         (s.split('=', 1) for s in a.set)})
     w, h = (int(v) for v in a.size.split('x'))
     modes = [m for m in a.modes.split(',') if m]
     gt_methods = [m for m in a.gt_methods.split(',') if m]
@@ -220,7 +243,7 @@ def main() -> None:
                 for occ in a.occluder.split(','):
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
                                       a.periodic)
-                    row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras)
+                    row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)

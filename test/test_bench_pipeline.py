@@ -57,3 +57,16 @@ def test_periodic_cases_repeat_their_deformation_while_the_camera_moves(bench):
             assert np.abs(seq.T_camera_world[8] - seq.T_camera_world[0]).max() > 1e-3
         else:
             assert gap > 1e-3 * extent
+
+
+def test_set_overrides_reach_the_stream_and_the_process_rows(bench):
+    """--set name=value: the changed reconstructor parameters go to stream(GT) as make_stream
+    overrides (mode excluded: stream(GT) is the default mode), and the parameter set reaches
+    the process rows; unknown names and bad values fail as on the node."""
+    from nrsfm_ros.params import ReconstructorParams
+    rec = ReconstructorParams().updated({'batch_frames': 30, 'mode': 'window',
+                                         'projection': 'weak'})
+    assert bench.stream_overrides(rec) == {'batch_frames': 30, 'projection': 'weak'}
+    assert bench.stream_overrides(ReconstructorParams()) == {}
+    with pytest.raises(ValueError, match='batch_frames'):
+        ReconstructorParams().updated({'batch_frames': 1})
