@@ -484,18 +484,26 @@ def test_planar_rejects_a_curved_cap_that_looks_flat_over_a_small_camera_motion(
     assert reconstruct(sheet.W, np.maximum(sheet.V, 1e-3), method='planar').converged
 
 
-def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
-    """auto (the reconstructor's default): a rigid, non-planar body with tracking noise seen over
-    a small rotation: bmm's extra freedom fits no better than one rigid shape (its residual is
-    above rigid's) and its shapes are 100x worse, so auto takes rigid; a strongly deforming
-    rank-3 sequence keeps bmm (it explains the tracks exactly, rigid does not)."""
-    from nrsfm_ros.core.nrsfm.stream import BMM_RIGID_RATIO, auto_solve
+def _rigid_body_small_rotation() -> tuple[np.ndarray, np.ndarray]:
+    """A rigid, non-planar body (40 frames, 400 points) with 0.01 tracking noise seen over an
+    8 x 20 degree rotation: tracks W and camera-frame shapes S."""
     rng = np.random.default_rng(0)
     F, P = 40, 400
     X = rng.normal(size=(3, P)) * [[1.0], [1.0], [0.6]]
     ang = np.stack([np.linspace(0, np.radians(8), F), np.linspace(0, np.radians(20), F)], 1)
     S = np.einsum('fij,jp->fpi', Rotation.from_euler('xy', ang).as_matrix(), X)
     W = S[:, :, :2].transpose(0, 2, 1).reshape(2 * F, P) + 0.01 * rng.normal(size=(2 * F, P))
+    return W, S
+
+
+def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
+    """auto (the reconstructor's default): a rigid, non-planar body with tracking noise seen over
+    a small rotation: bmm's extra freedom fits no better than one rigid shape (its residual is
+    above rigid's) and its shapes are 100x worse, so auto takes rigid; a strongly deforming
+    rank-3 sequence keeps bmm (it explains the tracks exactly, rigid does not)."""
+    from nrsfm_ros.core.nrsfm.stream import BMM_RIGID_RATIO, auto_solve
+    W, S = _rigid_body_small_rotation()
+    F, P = S.shape[:2]
     rig, bm = reconstruct(W, method='rigid'), reconstruct(W, method='bmm')
     assert bm.residual_px > BMM_RIGID_RATIO * rig.residual_px
     res = auto_solve(W, np.ones((F, P)))
@@ -522,12 +530,8 @@ def test_auto_decides_bmm_against_rigid_on_a_spread_subset(monkeypatch):
         sizes.append(W.shape[1])
         return real(W, V, **kw)
     monkeypatch.setattr(bmm_mod, 'bmm', counted)
-    rng = np.random.default_rng(0)
-    F, P = 40, 400
-    X = rng.normal(size=(3, P)) * [[1.0], [1.0], [0.6]]
-    ang = np.stack([np.linspace(0, np.radians(8), F), np.linspace(0, np.radians(20), F)], 1)
-    S = np.einsum('fij,jp->fpi', Rotation.from_euler('xy', ang).as_matrix(), X)
-    W = S[:, :, :2].transpose(0, 2, 1).reshape(2 * F, P) + 0.01 * rng.normal(size=(2 * F, P))
+    W, S = _rigid_body_small_rotation()
+    F, P = S.shape[:2]
     res = stream.auto_solve(W, np.ones((F, P)))
     assert res.method == 'rigid' and res.S.shape == (F, P, 3)
     assert sizes == [100]                       # the full bmm solve was never paid
