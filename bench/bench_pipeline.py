@@ -30,7 +30,7 @@ and track id); its static/flat baselines are recomputed on exactly those points 
 ``--periodic N``: every case's deformation repeats with a period of N frames while the camera
 keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
 ``--set name=value``: reconstructor parameters (YAML values, as on the node) for the pipeline
-rows and ``stream(GT)``, e.g. ``--set reject_outliers=false``.
+rows and ``stream(GT)``, e.g. ``--set projection=weak batch_frames=30``.
 """
 from __future__ import annotations
 
