@@ -111,14 +111,24 @@ class Graph:
         return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
 
     def stop(self, timeout: float = 5.0) -> dict[str, int]:
+        """Ctrl-C to every node; one still running after ``timeout`` is asked for its
+        threads' stacks (SIGUSR1: nodes/__init__.py) and killed, and the launcher says so."""
         for p in self.procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
         end = time.monotonic() + timeout
-        for p in self.procs.values():
+        for name, p in self.procs.items():
             try:
                 p.wait(max(0.1, end - time.monotonic()))
             except subprocess.TimeoutExpired:
+                sys.stderr.write(f'graph: node {name} (pid {p.pid}) did not stop within '
+                                 f'{timeout:g} s of Ctrl-C; its stacks follow, then kill\n')
+                sys.stderr.flush()
+                try:
+                    p.send_signal(signal.SIGUSR1)
+                    p.wait(1.0)
+                except subprocess.TimeoutExpired:
+                    pass
                 p.kill()
                 p.wait()
         return {n: p.returncode for n, p in self.procs.items()}

@@ -115,6 +115,72 @@ def test_kill_9_node_is_respawned_others_keep_publishing(rclpy_context):
     assert 'graph: node scene_flow exited with code -9; restarting' in err
 
 
+HANGING_NODE = """
+import sys, threading, time
+from rclpy.node import Node
+from nrsfm_ros.nodes import common
+common.SHUTDOWN_GRACE_S = 1.0
+
+def make():
+    node = Node('hanging_node')
+    # a non-daemon thread that never ends: interpreter teardown would join it forever
+    threading.Thread(target=time.sleep, args=(3600,)).start()
+    print('ready', flush=True)
+    return node
+
+sys.exit(common.spin_node(make, []))
+"""
+
+
+def test_node_stuck_after_ctrl_c_exits_in_bounded_time_with_its_stacks():
+    p = subprocess.Popen([sys.executable, '-c', HANGING_NODE], env=dict(os.environ),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == 'ready'
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        rc = p.wait(20)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = p.stderr.read()
+    assert rc == 0, err[-2000:]
+    assert took < 10.0
+    assert 'warning: node hanging_node still running 1 s after it began to stop' in err
+    assert 'most recent call first' in err         # faulthandler's stack of every thread
+
+
+STUCK_CHILD = """
+import signal, sys, time
+import nrsfm_ros.nodes  # noqa: F401 (a launched node: SIGUSR1 prints its stacks)
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+print('ready', flush=True)
+time.sleep(60)
+"""
+
+
+def test_graph_stop_reports_and_kills_a_node_that_ignores_ctrl_c(capsys):
+    from nrsfm_ros.live import Graph
+    from nrsfm_ros.nodes import LAUNCHED_ENV
+    graph = Graph(nodes=[])
+    child = subprocess.Popen([sys.executable, '-c', STUCK_CHILD],
+                             env={**os.environ, LAUNCHED_ENV: '1'}, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == 'ready'
+        graph.procs['stuck'] = child
+        codes = graph.stop(timeout=1.0)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert codes == {'stuck': -signal.SIGKILL}
+    said = capsys.readouterr().err
+    assert f'graph: node stuck (pid {child.pid}) did not stop within 1 s' in said
+    assert 'most recent call first' in child.stderr.read()
+
+
 @pytest.fixture(scope='module')
 def small_bag(tmp_path_factory) -> Path:
     from nrsfm_ros.io.sequence_bag import write_sequence_bag

@@ -1,6 +1,7 @@
 """rclpy nodes: thin wrappers of the processors in nrsfm_ros.processing."""
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 
@@ -19,3 +20,6 @@ def _stop_during_startup(signum: int, frame: object) -> None:
 
 if os.environ.get(LAUNCHED_ENV) == '1':
     signal.signal(signal.SIGINT, _stop_during_startup)
+    # SIGUSR1 prints every thread's stack to stderr: live.Graph sends it to a node that does
+    # not stop on Ctrl-C before it kills it, so the log says where the node hung
+    faulthandler.register(signal.SIGUSR1, all_threads=True)

@@ -2,7 +2,10 @@
 diagnostics, contained and counted errors."""
 from __future__ import annotations
 
+import faulthandler
+import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -222,9 +225,11 @@ def spin_node(make: Any, args: list[str] | None = None) -> int:
     """The idiomatic main: init, spin, clean shutdown on Ctrl-C or external shutdown."""
     from . import STOP_REQUESTED
     node = None
+    code = 1
     try:
         signal.signal(signal.SIGINT, signal.default_int_handler)   # see nodes/__init__.py
         if STOP_REQUESTED:           # Ctrl-C while importing: stop before starting anything
+            code = 0
             return 0
         rclpy.init(args=args)
         node = make()
@@ -232,16 +237,51 @@ def spin_node(make: Any, args: list[str] | None = None) -> int:
         executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()
+        code = 0
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        code = 0
     except Exception:
         # Ctrl-C between rclpy.init and a running executor: rclpy's handler shut the context
         # down and creating the node or its entities fails (RCLError); that is a clean stop
         if rclpy.ok():
             raise
+        code = 0
     finally:
+        shutdown_watchdog(_name(node), code)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+SHUTDOWN_GRACE_S = 5.0   # a node still running this long after Ctrl-C exits anyway
+
+
+def _name(node: Any) -> str:
+    try:
+        return node.get_name()
+    except Exception:            # not created, or its handle already gone
+        return 'node'
+
+
+def shutdown_watchdog(name: str, code: int = 0, grace_s: float | None = None
+                      ) -> threading.Thread:
+    """A daemon thread that, if the process is still alive ``grace_s`` after the node began
+    to stop (a thread stuck in a DDS call or a callback, or interpreter teardown joining a
+    worker), writes every thread's stack to stderr and ends the process with ``code`` (0 after
+    Ctrl-C: the node's work is over, and Ctrl-C of a graph must stop it in bounded time; 1 when
+    it stops on an error)."""
+    grace_s = SHUTDOWN_GRACE_S if grace_s is None else grace_s
+
+    def expire() -> None:
+        time.sleep(grace_s)
+        sys.stderr.write(f'warning: node {name} still running {grace_s:g} s after it began '
+                         'to stop; its threads:\n')
+        sys.stderr.flush()
+        faulthandler.dump_traceback(sys.stderr, all_threads=True)
+        sys.stderr.flush()
+        os._exit(code)
+    t = threading.Thread(target=expire, name='shutdown-watchdog', daemon=True)
+    t.start()
+    return t
 
