@@ -104,6 +104,29 @@ def test_bmm_cameras_exact_on_noise_free_low_rank_data():
     assert err.max() < 1e-4
 
 
+def test_bmm_admm_kernels_equal_the_numpy_expressions():
+    """The fused numba kernels of bmm_shapes (core/nrsfm/_admm.py) compute exactly the ADMM's
+    S-step, T = S + U / rho and dual update written as NumPy expressions."""
+    from nrsfm_ros.core.nrsfm._admm import data_step, dual_step
+    rng = np.random.default_rng(3)
+    F, P, rho, rho_den = 7, 50, 0.37, 0.74
+    Z, U, RtW = (rng.normal(size=(F, 3, P)) for _ in range(3))
+    V = rng.uniform(size=(F, P))
+    ev, E = np.linalg.eigh(np.einsum('fki,fkj->fij', *(2 * [rng.normal(size=(F, 2, 3))])))
+    S, T = np.empty_like(Z), np.empty_like(Z)
+    data_step(Z, U, RtW, E, ev, V, rho, rho_den, S, T)
+    coef = (E.transpose(0, 2, 1) @ (rho * Z - U + RtW)) / (rho_den + ev[:, :, None] * V[:, None])
+    S_ref = E @ coef
+    assert np.allclose(S, S_ref, rtol=1e-12, atol=1e-12)
+    assert np.allclose(T, S_ref + U / rho, rtol=1e-12, atol=1e-12)
+    Zn = rng.normal(size=(F, 3, P))
+    U_ref = U + rho * (S - Zn)
+    primal, dual = dual_step(S, Zn, Z, U, rho)
+    assert np.allclose(U, U_ref, rtol=1e-12, atol=1e-12)
+    assert primal == pytest.approx(np.linalg.norm(S - Zn), rel=1e-12)
+    assert dual == pytest.approx(rho * np.linalg.norm(Zn - Z), rel=1e-12)
+
+
 def test_bmm_handles_missing_entries_and_validates():
     W, S, _ = low_rank_sequence(K=1)
     rng = np.random.default_rng(3)

@@ -219,42 +219,34 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     closed-form data step) = Z (singular value thresholding) = Y (one banded F x F solve shared
     by every coordinate of every point)."""
     from scipy.linalg import solveh_banded
+
+    from ._admm import data_step, dual_step
     F, P = V.shape
     Wf = Wc.reshape(F, 2, P)
     unit = max(float(np.sqrt(np.mean(Wf ** 2))), 1e-12)
     Wf = Wf / unit
     Gm = np.einsum('fki,fkj->fij', R2, R2)
     ev, E = np.linalg.eigh(Gm)                          # (F, 3), (F, 3, 3)
-    RtW = (R2.transpose(0, 2, 1) @ Wf) * V[:, None, :]  # (F, 3, P)
+    E, ev = np.ascontiguousarray(E, np.float64), np.ascontiguousarray(ev, np.float64)
+    Vc = np.ascontiguousarray(V, np.float64)
+    RtW = np.ascontiguousarray((R2.transpose(0, 2, 1) @ Wf) * V[:, None, :],
+                               np.float64)               # (F, 3, P)
     # initial shapes: pseudo-inverse with zero depth
-    S = RtW.copy() if init is None else init / unit
-    Z = S.copy()
-    U = np.zeros_like(S)
+    Z = RtW.copy() if init is None else np.ascontiguousarray(init / unit, np.float64)
+    U = np.zeros_like(Z)
+    S, T = np.empty_like(Z), np.empty_like(Z)
     use_y = smooth > 0 and F >= 3
-    Y, U2 = (S.copy(), np.zeros_like(S)) if use_y else (None, None)
+    Y, U2 = (Z.copy(), np.zeros_like(Z)) if use_y else (None, None)
     tau = lam * np.sqrt(P)
     ab0 = second_difference_banded(F, smooth, 0.0) if use_y else None
-    Et = np.ascontiguousarray(E.transpose(0, 2, 1))
-    evV = ev[:, :, None] * V[:, None, :]
     it, converged = 0, False
     for it in range(1, iterations + 1):
-        rhs = rho * Z
-        rhs -= U
-        rhs += RtW
-        if use_y:
-            rhs += rho * Y
-            rhs -= U2
-        coef = Et @ rhs
-        coef /= (2 if use_y else 1) * rho + evV
-        S = E @ coef
-        T = U / rho
-        T += S
-        Zn = _svt(T.reshape(F, 3 * P), tau / rho).reshape(F, 3, P)
-        D = np.subtract(S, Zn, out=T)
-        r_primal = np.linalg.norm(D)
-        D *= rho
-        U += D
-        r_dual = rho * np.linalg.norm(np.subtract(Zn, Z, out=D))
+        # S-step and T = S + U / rho fused (core/nrsfm/_admm.py); the trajectory prior adds
+        # rho Y - U2 to the linear term and rho to the diagonal
+        lin = RtW + rho * Y - U2 if use_y else RtW
+        data_step(Z, U, lin, E, ev, Vc, rho, (2 if use_y else 1) * rho, S, T)
+        Zn = np.ascontiguousarray(_svt(T.reshape(F, 3 * P), tau / rho).reshape(F, 3, P))
+        r_primal, r_dual = dual_step(S, Zn, Z, U, rho)
         if use_y:
             ab = ab0.copy()
             ab[2] += rho
