@@ -228,6 +228,10 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument('--smooth', type=float, default=None,
                     help='bmm/cdf: weight of the trajectory prior on the shapes (second '
                     'differences over frames; default 100 with orbit cameras, else 0)')
+    rc.add_argument('--robust', type=float, default=None, metavar='K',
+                    help='rigid: Huber-reweighted fit, entries further than K x the robust '
+                    'spread of the reprojection distances count less (tracker outliers; '
+                    'default 0: the plain factorisation)')
     rc.add_argument('--out', required=True)
 
     from .hdmnet_tools import add_image_args, add_train_args
@@ -927,6 +931,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if args.method not in ('bmm', 'cdf'):
             raise CliError(f'{flag} applies to --method bmm and cdf, not {args.method}')
         kw[key] = value
+    if args.robust is not None:
+        if args.method != 'rigid':
+            raise CliError(f'--robust applies to --method rigid, not {args.method}')
+        kw['robust'] = args.robust
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     extra = f', compression {res.compression:.1f}x' if res.compression != 1.0 else ''
@@ -944,7 +952,7 @@ def _reconstruct_dspr(d: Any, args: argparse.Namespace) -> int:
     from .core.nrsfm.result import check_tracks
     from .core.nrsfm.stream import StreamNRSfM
     for flag, key in (('--rank', 'rank'), ('--camera-model', 'camera_model'),
-                      ('--smooth', 'smooth')):
+                      ('--smooth', 'smooth'), ('--robust', 'robust')):
         if getattr(args, key) is not None:
             raise CliError(f'{flag} does not apply to --method dspr')
     W, V = check_tracks(d['W'], d['V'] if 'V' in d.files else None)
