@@ -62,6 +62,29 @@ def test_perspective_picks_the_true_depth_reflection():
     assert (corr > 0).all()
 
 
+def test_a_clear_reflection_costs_one_solve_and_the_same_result(monkeypatch):
+    """Where the weak solution imaged through its own and its flipped depths differs by
+    PROXY_MARGIN, only that reflection is solved: one solve fewer, the same shapes as solving
+    both (the true reflection wins either way)."""
+    import nrsfm_ros.core.nrsfm.perspective as persp
+    W, V, S = pinhole_scene(distance=2.0, seed=3)
+    weak = rigid_solve(W, V)
+    calls = []
+
+    def counted(W, V):
+        calls.append(1)
+        return rigid_solve(W, V)
+    res = perspective_solve(counted, W, V, FOCAL, PRINCIPAL, weak=weak)
+    assert len(calls) == 1
+    monkeypatch.setattr(persp, 'PROXY_MARGIN', np.inf)         # never decided without solves
+    calls.clear()
+    both = perspective_solve(counted, W, V, FOCAL, PRINCIPAL, weak=weak)
+    assert len(calls) == 2
+    np.testing.assert_allclose(res.S, both.S)
+    z = res.S[:, :, 2] - res.S[:, :, 2].mean(axis=1, keepdims=True)
+    assert ((z * S[:, :, 2]).sum(axis=1) > 0).all()
+
+
 def test_far_camera_keeps_the_weak_solution_when_perspective_does_not_help():
     """Flat scene far away: no relief to observe; the weak solution itself comes back."""
     W, V, _ = pinhole_scene(distance=200.0, relief=0.0)
