@@ -7,8 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.metrics import e3d_frobenius
 from nrsfm_ros.core.nrsfm import reconstruct
-from nrsfm_ros.core.nrsfm.factorization import (_centre, _rank3_factors, _solve_rigid_shape,
-                                                _upgrade_system, depth_ratio, metric_upgrade,
+from nrsfm_ros.core.nrsfm.factorization import (_centre, _rank3_factors, _rank_project,
+                                                _solve_rigid_shape, _upgrade_system,
+                                                depth_ratio, impute_low_rank, metric_upgrade,
                                                 rigid)
 from tests_helpers import low_rank_sequence
 
@@ -51,6 +52,38 @@ def test_upgrade_exact_on_rigid_data():
     np.testing.assert_allclose(G, G[:, :1, :1] * np.eye(2), atol=1e-9 * G.max())
     np.testing.assert_allclose(A, metric_upgrade(M_hat), atol=1e-12)  # bound inactive
     assert e3d_frobenius(rigid(W).S, S, 'global') < 1e-6
+
+
+def _hard_impute_reference(W, V, rank, iterations=20):
+    """The hard imputation written plainly: every iteration the rank-K projection of all of
+    the centred tracks, its values copied into the hidden entries."""
+    M = np.repeat(V >= 0.5, 2, axis=0)
+    X = W.copy()
+    mean = (W * M).sum(axis=1, keepdims=True) / np.maximum(M.sum(axis=1, keepdims=True), 1)
+    X[~M] = np.broadcast_to(mean, X.shape)[~M]
+    for _ in range(iterations):
+        mu = X.mean(axis=1, keepdims=True)
+        X[~M] = (_rank_project(X - mu, rank) + mu)[~M]
+    return X
+
+
+@pytest.mark.parametrize('tracks, hidden_tracks', [(400, 30), (400, 400), (20, 20)])
+def test_impute_low_rank_equals_the_plain_hard_imputation(tracks, hidden_tracks):
+    """Few tracks with hidden entries (the Gram matrix updated by their change), hidden entries
+    everywhere, and tall tracks (more rows than tracks): the same imputation as the plain
+    iteration, and the visible entries untouched."""
+    W, _, _ = low_rank_sequence(K=2, F=30, P=tracks)
+    rng = np.random.default_rng(2)
+    V = np.ones((30, tracks))
+    cols = rng.choice(tracks, hidden_tracks, replace=False)
+    V[:, cols] = rng.uniform(size=(30, hidden_tracks)) > 0.3
+    V[0, cols] = 1.0                         # every track seen at least once
+    for rank in (3, 6):
+        X = impute_low_rank(W, V, rank)
+        ref = _hard_impute_reference(W, V, rank)
+        np.testing.assert_allclose(X, ref, rtol=0, atol=1e-9 * np.abs(W).max())
+        M = np.repeat(V >= 0.5, 2, axis=0)
+        assert np.array_equal(X[M], W[M])
 
 
 def test_robust_rigid_discounts_gross_track_errors():

@@ -24,10 +24,31 @@ def impute_low_rank(W: np.ndarray, V: np.ndarray, rank: int, iterations: int = 2
     X = W.copy()
     mean = (W * M).sum(axis=1, keepdims=True) / np.maximum(M.sum(axis=1, keepdims=True), 1)
     X[~M] = np.broadcast_to(mean, X.shape)[~M]
+    n, P = X.shape
+    J = np.flatnonzero((~M).any(axis=0))          # the tracks with hidden entries
+    if n > P or 2 * J.size > P:
+        for _ in range(iterations):
+            mu = X.mean(axis=1, keepdims=True)
+            L = _rank_project(X - mu, rank) + mu      # through the smaller Gram matrix
+            X[~M] = L[~M]
+        return X
+    # Wide tracks, hidden entries in few of them: only those columns change, so the Gram
+    # matrix X X^T and the row sums are updated by their change (exact up to rounding), and
+    # the rank-K projection is evaluated on those columns alone (5-8x less per iteration)
+    H = ~M[:, J]
+    XJ = X[:, J]
+    G = X @ X.T
+    rows = X.sum(axis=1)
     for _ in range(iterations):
-        mu = X.mean(axis=1, keepdims=True)
-        L = _rank_project(X - mu, rank) + mu      # through the smaller Gram matrix
-        X[~M] = L[~M]
+        mu = rows / P
+        E = np.linalg.eigh(G - np.outer(rows, mu))[1][:, -rank:]
+        LJ = E @ (E.T @ (XJ - mu[:, None])) + mu[:, None]
+        D = np.where(H, LJ - XJ, 0.0)
+        A = D @ XJ.T
+        G += A + A.T + D @ D.T
+        rows += D.sum(axis=1)
+        XJ += D
+    X[:, J] = XJ
     return X
 
 
