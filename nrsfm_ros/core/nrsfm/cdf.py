@@ -66,12 +66,14 @@ def coherent_fill(W: np.ndarray, V: np.ndarray, beta: float = 0.5, lam: float = 
     r = int(np.argmax(vis.sum(1)))
     first = np.argmax(vis, axis=0)                      # a frame where each track is seen
     ref = np.where(vis[r][:, None], Wf[r].T, Wf[first, :, np.arange(P)])
+    J = np.flatnonzero(~vis.all(axis=0))                # the fields are read where hidden only
     X = W
     for _ in range(2):
         Phi = _features(ref, beta, landmarks, seed)
         D = (Wf - ref.T[None]).transpose(0, 2, 1)       # (F, P, 2)
-        fit = np.einsum('pl,flk->fpk', Phi, field_fit(Phi, D, vis, lam))
-        filled = np.where(vis[:, :, None], D, fit) + ref[None]
+        fit = Phi[J] @ field_fit(Phi, D, vis, lam)      # (F, |J|, 2)
+        filled = D + ref[None]
+        filled[:, J] = np.where(vis[:, J, None], D[:, J], fit) + ref[None, J]
         X = filled.transpose(0, 2, 1).reshape(2 * F, P)
         ref = filled[r]                                  # consistent reference for pass 2
     return X
@@ -116,7 +118,9 @@ def cdf(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: floa
     Sbar = (S * vis[:, None, :]).sum(0) / np.maximum(vis.sum(0), 1)
     Phi = _features(X.reshape(F, 2, P)[int(np.argmax(vis.sum(1)))].T, beta, landmarks, seed)
     C = field_fit(Phi, (S - Sbar[None]).transpose(0, 2, 1), vis, lam)
-    S = np.where(vis[:, None, :], S, np.einsum('pl,flk->fkp', Phi, C) + Sbar[None])
+    J = np.flatnonzero(~vis.all(axis=0))                # hidden points take the 3-D field
+    S[:, :, J] = np.where(vis[:, None, J], S[:, :, J],
+                          (Phi[J] @ C).transpose(0, 2, 1) + Sbar[None, :, J])
     R = complete_rotations(R2)
     pred = R2 @ S
     d = np.linalg.norm(Xc.reshape(F, 2, P) - pred, axis=1)
