@@ -130,14 +130,43 @@ def dai_rotations(Wc: np.ndarray, V: np.ndarray, K: int, trace_weight: float = 1
     else:
         U, s, _ = np.linalg.svd(X, full_matrices=False)
     r = min(3 * K, s.size)
-    Phat = U[:, :r] * np.sqrt(s[:r])
+    U = U[:, :r] * np.sign(U[np.abs(U[:, :r]).argmax(axis=0), np.arange(r)])   # (reproducible)
+    Phat = U * np.sqrt(s[:r])
     Phat = Phat / np.sqrt(np.mean(Phat ** 2))        # unit scale helps the conditioning
-    Q = metric_projection_Q(Phat, trace_weight)
-    lam, E = np.linalg.eigh(Q)
-    G = refine_G(Phat, E[:, -3:] * np.sqrt(np.maximum(lam[-3:], 1e-12)))
+    G = refine_G(Phat, start_G(metric_projection_Q(Phat, trace_weight)))
     M = (Phat @ G).reshape(F, 2, 3)
     Uo, _, Vt = np.linalg.svd(M, full_matrices=False)
     return consistent_signs(Uo @ Vt)
+
+
+NULL_RATIO = 1e-6   # an eigenvalue of Q below this x its largest: a direction Q leaves unset
+
+
+def start_G(Q: np.ndarray) -> np.ndarray:
+    """The start (n x 3) of ``refine_G`` from the trace-minimising Q: its top three
+    eigenvectors scaled by the roots of their eigenvalues, made reproducible.  eigh's output
+    is fixed only up to each eigenvector's sign, and where Q has rank < 3 (the camera motion
+    leaves a direction unobserved) its third eigenvector is any vector of Q's null space.
+    Here each column's largest entry is positive and an unset direction is the projection of
+    a fixed vector on the null space (spanned stably: the gap to the set eigenvalues is
+    large).  With the signs of ``dai_rotations``' motion basis fixed too, 1e-12 changes of
+    the tracks change the cameras by 1e-9 up to one global rotation (the metric upgrade's
+    gauge), where they flipped frames and moved ``cdf``'s shapes by 33% before."""
+    lam, E = np.linalg.eigh((Q + Q.T) / 2)
+    n = E.shape[0]
+    top = E[:, -3:].copy()
+    set_ = lam[-3:] > NULL_RATIO * max(float(lam[-1]), 1e-300)
+    if not set_.all():
+        k = int(set_.sum())                     # eigenvectors of the set eigenvalues
+        N = E[:, :n - k]                        # the rest: Q's (near-)null space
+        fixed = np.stack([np.ones(n), np.arange(1.0, n + 1)])
+        for j in range(3 - k):
+            v = N @ (N.T @ fixed[j % 2])
+            for prev in range(j):               # orthogonal to the ones already chosen
+                v -= top[:, prev] * (top[:, prev] @ v)
+            top[:, j] = v / max(float(np.linalg.norm(v)), 1e-300)
+    top *= np.sign(top[np.abs(top).argmax(axis=0), np.arange(3)])
+    return top * np.sqrt(np.maximum(lam[-3:], 1e-12))
 
 
 AUTO_RANKS = (2, 3, 4, 5, 6)
