@@ -229,7 +229,6 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None, robust: float = 0.0,
     res = _rigid(W, V)
     if robust == 0 or robust_rounds == 0:
         return replace(res, seconds=time.perf_counter() - t0)
-    F, P = V.shape
     seen = V >= 0.5
     for _ in range(robust_rounds):
         r = _entry_residuals(res, W)
