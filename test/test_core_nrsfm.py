@@ -589,3 +589,31 @@ def test_auto_decides_bmm_against_rigid_on_a_spread_subset(monkeypatch):
     res2 = stream.auto_solve(W2, np.ones((60, 300)))
     assert res2.method == 'bmm' and res2.S.shape == (60, 300, 3)
     assert sizes == [100, 300]
+
+
+def test_stream_bmm_solves_run_fewer_iterations_with_the_same_shapes(monkeypatch):
+    """The stream's bmm solves (auto's decision and full solve, a chosen ``bmm``) run
+    BMM_ITERATIONS ADMM iterations, fewer than bmm's own default, and give the same shapes
+    as the default on a deforming rank-3 sequence (e3D within 1e-3 of it)."""
+    import importlib
+    bmm_mod = importlib.import_module('nrsfm_ros.core.nrsfm.bmm')
+    stream = importlib.import_module('nrsfm_ros.core.nrsfm.stream')
+    import inspect
+    default = inspect.signature(bmm_mod.bmm).parameters['iterations'].default
+    assert stream.BMM_ITERATIONS < default
+    seen = []
+    real = bmm_mod.bmm
+
+    def counted(W, V=None, **kw):
+        seen.append(kw.get('iterations', default))
+        return real(W, V, **kw)
+    monkeypatch.setattr(bmm_mod, 'bmm', counted)
+    monkeypatch.setitem(importlib.import_module('nrsfm_ros.core.nrsfm').METHODS, 'bmm', counted)
+    W, S, _ = low_rank_sequence(K=3, F=60, P=300)
+    V = np.ones((60, 300))
+    res = stream.auto_solve(W, V)
+    chosen = stream._solve_all(W, V, 'bmm', 0)
+    assert res.method == 'bmm' and seen == [stream.BMM_ITERATIONS] * 2
+    full = real(W, V)
+    for r in (res, chosen):
+        assert abs(e3d_normalized(r.S, S) - e3d_normalized(full.S, S)) < 1e-3

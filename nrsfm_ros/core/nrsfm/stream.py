@@ -67,6 +67,10 @@ BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above
 #   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
 #   e3D 0.08-0.18 there against rigid's 0.025-0.067); the cap at 12 deg 0.24 (bmm 0.20, rigid
 #   0.27); the mocap sets of ../shared/data/nrsfm 0.00-0.26 (face 0.26, the rest <= 0.12).
+BMM_ITERATIONS = 40      # ADMM iterations of the stream's bmm solves (bmm's own default: 100):
+#   the same e3D to 4 digits on 8 face / cap sweep cases (30 / 60 deg, with and without the
+#   occluder; ground-truth stream and through the tracker), `process` on the 320x240 face
+#   12.7 -> 9.4 s (BENCHMARKS, issue 17)
 DECISION_TRACKS = 2000    # auto decides bmm against rigid on at most this many spread tracks:
 #   the ratio on 2000 of ~5k ground-truth tracks of the 256x192 renders is within 3% of the
 #   full one (face 30 deg 0.338 / 0.341, 0.699 / 0.691 occluded, 60 deg 0.585 / 0.585; cap
@@ -110,6 +114,8 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMRes
     if method == 'auto':
         return auto_solve(W, V)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
+    if method == 'bmm':
+        kw = {'iterations': BMM_ITERATIONS}
     if method == 'planar':          # chosen (by the user or by auto's first decision): the
         kw = {'rigid_check': False}  # stream never reads converged, skip its rigid solve
     return reconstruct(W, V, method=method, **kw)
@@ -130,16 +136,17 @@ def auto_solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
     if res.converged:
         return res
     if rig is None:
-        return bmm(W, V)
+        return bmm(W, V, iterations=BMM_ITERATIONS)
     # bmm against rigid is decided on a spread subset of the tracks (the residual ratio is a
     # mean over tracks): the full bmm solve is only paid where bmm is taken
     idx = spread_subset(V.shape[1], DECISION_TRACKS)
     sub = idx.size < V.shape[1]
-    trial = bmm(W[:, idx], V[:, idx]) if sub else bmm(W, V)
+    trial = bmm(W[:, idx], V[:, idx], iterations=BMM_ITERATIONS) if sub else \
+        bmm(W, V, iterations=BMM_ITERATIONS)
     base = rigid_residual(safe_rigid(W[:, idx], V[:, idx]) if sub else rig)
     if trial.residual_px > BMM_RIGID_RATIO * base:
         return rig
-    return bmm(W, V) if sub else trial
+    return bmm(W, V, iterations=BMM_ITERATIONS) if sub else trial
 
 
 class StreamNRSfM:
