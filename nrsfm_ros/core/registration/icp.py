@@ -11,10 +11,11 @@ from .base import (RegistrationResult, apply, check_param, check_points, diagona
                    kabsch, resolve_threshold, rigid_result)
 from .globalsearch import global_pose
 from .refine import (estimate_normals, fine_levels, icp_iterate, icp_levels,  # noqa: F401
-                     voxel_downsample)
+                     surface_pass, voxel_downsample)
 
 FINE_VOXEL = 0.01      # init='global', voxel 0: the fine pass's cell edge, of the target diagonal
 FINE_FACTORS = (4.0, 2.0, 1.0)   # init='global': the fine passes' grids, x the cell edge
+SURFACE_FACTORS = (4.0, 2.0)   # point-to-plane, voxel > 0: the grids before refine.surface_pass
 ICP_METHODS = {'icp': 'point_to_point', 'icp-point-to-point': 'point_to_point',
                'icp-point-to-plane': 'point_to_plane'}
 
@@ -40,7 +41,10 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
     points (the transform is then applied to all of them); 0 uses every point.
     ``voxel``: when > 0, both sets are reduced to voxel-grid centroids of this edge (input
     units) for the iterations -- faster, and the centroids average the sensor noise out of the
-    pairs and the normals (``target_tree`` then only serves the final correspondences).
+    pairs and the normals (``target_tree`` then only serves the final correspondences);
+    grids of 4, 2, 1 x ``voxel``, except point-to-plane: grids of 4 and 2 x ``voxel``, then
+    ``refine.surface_pass`` on local planes of the raw points (no grid bias; robust weights
+    in place of ``trim``).
     ``inlier_threshold``: the distance of the reported fitness and inlier RMSE (``base``).
     """
     t0 = time.perf_counter()
@@ -77,13 +81,20 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         return rigid_result(src, T, tree, threshold, f'icp-{method}', it,
                             converged and not ambiguous, t0)
     # the iterations reuse target_tree only when they run on the whole target itself
+    surface = method == 'point_to_plane' and voxel > 0
     levels = icp_levels(src, dst, method, voxel, max_points,
-                        target_tree if voxel == 0 and dst is full_dst else None)
+                        target_tree if voxel == 0 and dst is full_dst else None,
+                        SURFACE_FACTORS if surface else (4.0, 2.0, 1.0))
     T, it, converged, _ = icp_iterate(levels, T, method, max_iterations, tolerance,
-                                      max_correspondence_distance, trim, voxel)
+                                      max_correspondence_distance, trim, voxel,
+                                      finish=not surface)
     if voxel > 0 or dst is not full_dst:
         tree = cKDTree(full_dst) if target_tree is None else target_tree
     else:
         tree = levels[0].tree
+    if surface:     # the finest grid's place: local planes of the raw points (refine)
+        T, more, converged = surface_pass(src, full_dst, T, min(voxel,
+                                          max_correspondence_distance / 3), target_tree=tree)
+        it += more
     return rigid_result(src, T, tree, threshold, f'icp-{method}', it,
                         converged and not ambiguous, t0)
