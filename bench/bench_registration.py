@@ -313,16 +313,25 @@ OURS_GLOBAL = {'icp-point-to-plane init global': ('icp-point-to-plane',
 
 def symmetric_equivalent(S: np.ndarray, R_found: np.ndarray, R_true: np.ndarray) -> bool:
     """The found rotation, more than 5 degrees off, maps the clean shape onto the truly rotated
-    one (mean nearest distance below 1% of the diagonal): a symmetry of the shape, not a wrong
-    pose (small errors are never counted as symmetries)."""
+    one: a symmetry of the shape, not a wrong pose (small errors are never counted as
+    symmetries).  Onto: 20000 probes of the shape at the found rotation, snapped by 5 ICP
+    steps (the found pose's own small error removed), leave fewer than 0.4% of them farther
+    than 1.5% of the diagonal from the shape.  Measured on the exact 180-degree turns of the
+    corpus: superquadrics 0.09-0.2% (sparse sampling at their edges), tori 0%; the
+    near-symmetric solids with their feature misplaced 0.6-1.3%.  (The test before, a mean
+    distance below 1%, also passed the near-symmetric shapes with the feature misplaced.)"""
     from scipy.spatial import cKDTree
+    from nrsfm_ros.core.registration.base import kabsch
     if rotation_error_deg(R_found, R_true) <= 5.0:
         return False
-    # 4000 probes of the shape against all of it (a sparse subsample against itself has a
-    # mean gap near the 1% threshold, so exact symmetries failed the test)
     S = S - S.mean(0)
-    P = S[np.linspace(0, len(S) - 1, 4000).astype(np.intp)]
-    return float(cKDTree(S @ R_true.T).query(P @ R_found.T)[0].mean()) < 0.01
+    P = S[np.linspace(0, len(S) - 1, min(len(S), 20000)).astype(np.intp)] @ R_found.T
+    Y = S @ R_true.T
+    tree = cKDTree(Y)
+    for _ in range(5):
+        T = kabsch(P, Y[tree.query(P, workers=-1)[1]])
+        P = P @ T[:3, :3].T + T[:3, 3]
+    return float(np.mean(tree.query(P, workers=-1)[0] > 0.015)) < 0.004
 
 
 def parse_cases(specs: list[str], names: list[str]) -> dict[tuple[str, bool], set[int]]:

@@ -489,3 +489,45 @@ def _pose_matrix(deg: float, t) -> np.ndarray:
                                      / np.linalg.norm([0.3, 1.0, -0.2])).as_matrix()
     T[:3, 3] = t
     return T
+
+
+def _knobbed_cylinder(n: int, rng) -> np.ndarray:
+    """A capped cylinder (radius 0.5, height 2) with one small knob on its side, scaled to
+    diagonal 1: symmetric but for the knob (~1% of the points, 3% of the diagonal high)."""
+    u = rng.uniform(-np.pi, np.pi, n)
+    v = rng.uniform(-1, 1, n)
+    knob = 0.15 * np.exp(-((u - 1.0) ** 2 + (v - 0.5) ** 2) / 0.03)
+    side = np.stack([0.5 * np.cos(u) * (1 + knob), 0.5 * np.sin(u) * (1 + knob), v], 1)
+    m = n // 6
+    r, a = 0.5 * np.sqrt(rng.uniform(0, 1, (2, m))), rng.uniform(0, 2 * np.pi, (2, m))
+    caps = [np.stack([r[i] * np.cos(a[i]), r[i] * np.sin(a[i]), np.full(m, z)], 1)
+            for i, z in enumerate((-1.0, 1.0))]
+    X = np.vstack([side, *caps])[rng.permutation(n + 2 * m)[:n]]
+    return (X - X.mean(0)) / np.linalg.norm(X.max(0) - X.min(0))
+
+
+def test_global_start_turns_a_near_symmetric_shape_onto_its_feature():
+    """A cylinder with a knob, turned at random: the search's poses are ambiguous (every turn
+    about the axis explains nearly all points), and the symmetry sweep finds the turn that puts
+    the knob on the target's knob: within 1.5 degrees on three draws (without the sweep one
+    of them ends 12 degrees off, at a turn about the axis; measured 0.6 / 12.3 / 0.7)."""
+    import nrsfm_ros.core.registration.globalsearch as gs
+    rng = np.random.default_rng(11)
+    errs, unswept = [], []
+    for _ in range(3):
+        src = _knobbed_cylinder(35000, rng) + rng.normal(0, 0.005, (35000, 3))
+        R = Rotation.random(random_state=rng).as_matrix()
+        tgt = (_knobbed_cylinder(35000, rng) + rng.normal(0, 0.005, (35000, 3))) @ R.T + 0.1
+        res = register(src, tgt, method='icp-point-to-plane', init='global', voxel=0.01)
+        errs.append(rotation_error_deg(res.T_target_source[:3, :3], R))
+        assert not res.converged            # still reported: the poses were ambiguous
+        g = gs.global_pose(src, tgt)
+        assert g.ambiguous
+        sweep, gs.symmetry_sweep = gs.symmetry_sweep, lambda Y, T, *a: (T, -np.inf)
+        try:
+            unswept.append(rotation_error_deg(gs.global_pose(src, tgt).T_target_source[:3, :3],
+                                              R))
+        finally:
+            gs.symmetry_sweep = sweep
+    assert max(errs) < 1.5, errs
+    assert max(unswept) > 5.0, unswept

@@ -32,6 +32,7 @@ scores 0.35 s, the candidate ICPs 0.4 s).  ``icp(..., init='global')`` runs it a
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,5 +221,85 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     best_T, best = poses[top[0]], float(scores[top[0]])
     ambiguous = len(top) > 1 and scores[top[1]] >= AMBIGUOUS_RATIO * best and \
         rotation_angle_deg(poses[top[1]][:3, :3], best_T[:3, :3]) > AMBIGUOUS_DEG
+    if ambiguous:       # a (near) symmetry: a feature that breaks it may still decide
+        T, sc = symmetry_sweep(Yf, best_T, tree, levels[1:], trim, diag,
+                               lambda T: score_of(T, Yf))
+        if sc > best:
+            best_T, best = T, sc
     return GlobalPose(T_target_source=best_T, score=best, candidate_scores=scores,
                       target_inliers=keep_t, ambiguous=bool(ambiguous))
+
+
+
+SWEEP_STEP_DEG = 5.0      # symmetry_sweep: turns about the symmetry axis this far apart
+SWEEP_FEATURE = 0.05      # symmetry_sweep: at most this share of source points (and at
+SWEEP_MIN_FEATURE = 50    #   least these) score the turns: the feature, if it is found
+SWEEP_REFINED = 3         # symmetry_sweep: the best turns refined by ICP and rescored
+SWEEP_KEPT = 0.8          # symmetry_sweep: turns about an axis keep this share of the fit
+SWEEP_POINTS = 8000       # symmetry_sweep: source points searched for the feature
+
+
+def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
+                   trim: float, diag: float, score: Callable[[np.ndarray], float]
+                   ) -> tuple[np.ndarray, float]:
+    """Where the best poses are ambiguous, a (near) symmetry of the shape: a feature that
+    breaks it (a knob on a cylinder) may still decide, but it is too small a share of the
+    points for the search's scores.  The aligned source (``Y`` at pose ``T``, target frame) is
+    turned about each of its principal axes through its centroid (the axis of a rotational
+    symmetry is one of them) by 45 to 315 degrees; the axis whose turns keep the most points
+    explained is the symmetry axis (none where no axis keeps ``SWEEP_KEPT`` of the fit at
+    ``T``, e.g. a box's flips: ``T`` is returned with score -inf).  The source points (of
+    ``SWEEP_POINTS``) that stay off the target (3 x the median distance) at most of 12 turns
+    about it (at most ``SWEEP_FEATURE`` of them: the feature; on the corpus' cylinder its
+    knob, ~0.2% of the points) score turns about it every ``SWEEP_STEP_DEG``, each also
+    flipped end over end (180 degrees about another principal axis); the ``SWEEP_REFINED``
+    best are refined on ``levels`` and rescored with ``score``.  Soft counts
+    within 1% of the diagonal against exact nearest target points (``tree``).  Returns (the
+    best refined pose, its score)."""
+    h2 = (0.01 * diag) ** 2
+
+    def soft(Q: np.ndarray) -> np.ndarray:
+        d = tree.query(Q.reshape(-1, 3), workers=-1)[0].reshape(Q.shape[:-1])
+        return np.clip(1 - d ** 2 / h2, 0, None)
+
+    def turned(R: np.ndarray, X: np.ndarray) -> np.ndarray:     # R (h, 3, 3) about c
+        return np.einsum('hij,nj->hni', R, X - c) + c
+
+    A = Y @ T[:3, :3].T + T[:3, 3]
+    c = A.mean(0)
+    axes = np.linalg.eigh(np.cov((A - c).T))[1].T
+    quarter = np.radians(np.arange(45.0, 360.0, 45.0))
+    P = A[np.linspace(0, len(A) - 1, min(len(A), 1500)).astype(np.intp)]
+    kept = [soft(turned(Rotation.from_rotvec(np.outer(quarter, ax)).as_matrix(), P)).mean()
+            for ax in axes]
+    k = int(np.argmax(kept))
+    if kept[k] < SWEEP_KEPT * soft(P[None]).mean():
+        return T, -np.inf               # no axis of a continuous symmetry (a box's flips)
+    axis, other = axes[k], axes[(k + 1) % 3]
+    # the feature: points off the target (3x the median distance) at most of 12 turns
+    A = A[::max(1, len(A) // SWEEP_POINTS)]
+    Q = turned(Rotation.from_rotvec(np.outer(np.radians(np.arange(0.0, 360.0, 30.0)), axis)
+                                    ).as_matrix(), A)
+    d = tree.query(Q.reshape(-1, 3), workers=-1)[0].reshape(Q.shape[:-1])
+    off = (d > 3 * np.median(d)).mean(0)
+    pick = np.argsort(-off)[:max(SWEEP_MIN_FEATURE, int(SWEEP_FEATURE * len(A)))]
+    pick = pick[off[pick] >= 0.5]
+    if pick.size < SWEEP_MIN_FEATURE // 5:
+        return T, -np.inf                                # nothing breaks the symmetry
+    F = A[pick]
+    turns = Rotation.from_rotvec(np.outer(np.radians(np.arange(0.0, 360.0, SWEEP_STEP_DEG)),
+                                          axis)).as_matrix()
+    flip = Rotation.from_rotvec(np.pi * other).as_matrix()
+    H = np.concatenate([turns, turns @ flip])
+    order = np.argsort(-soft(turned(H, F)).sum(1))
+    best_T, best = T, -np.inf
+    for h in order[:SWEEP_REFINED]:
+        Th = np.eye(4)
+        Th[:3, :3] = H[h] @ T[:3, :3]
+        Th[:3, 3] = H[h] @ (T[:3, 3] - c) + c
+        Th = icp_iterate(levels, Th, 'point_to_plane', FINE_ITERATIONS, 1e-6, np.inf, trim,
+                         0.02 * diag)[0]
+        sc = score(Th)
+        if sc > best:
+            best_T, best = Th, sc
+    return best_T, best

@@ -77,6 +77,8 @@ def icp(source: np.ndarray, target: np.ndarray, method: str = 'point_to_point',
         fv = voxel if voxel > 0 else FINE_VOXEL * diagonal(dst)
         T, it, converged = fine_levels(src, dst, T, fv, FINE_FACTORS,
                                        min(max_iterations, 15))
+        T, more, _ = surface_pass(src, dst, T, fv)
+        it += more
         tree = cKDTree(full_dst) if target_tree is None else target_tree
         return rigid_result(src, T, tree, threshold, f'icp-{method}', it,
                             converged and not ambiguous, t0)
