@@ -179,6 +179,41 @@ def polish(source: np.ndarray, target: np.ndarray, T: np.ndarray, trim: float,
                        'point_to_point', max_iterations, 1e-6, np.inf, trim, 0.0)[0]
 
 
+def symmetric_plane_step(src: np.ndarray, ns: np.ndarray, ts: cKDTree, dst: np.ndarray,
+                         nt: np.ndarray, tt: cKDTree, T: np.ndarray, gate: float, s2: float
+                         ) -> np.ndarray | None:
+    """One robust symmetric point-to-plane Gauss-Newton step from pose ``T`` (source -> target
+    frame): every moved source point paired with its nearest target point (target normal
+    ``nt``) and every target point with its nearest moved source point (source normal ``ns``),
+    pairs further apart than ``gate`` dropped, each weighted by Geman-McClure of its plane
+    residual with squared scale ``s2``; ``ts`` / ``tt``: trees of ``src`` / ``dst``.  The
+    small-angle update x (rotation vector, translation), or None with fewer than 6 pairs."""
+    R, t = T[:3, :3], T[:3, 3]
+    moved = apply(T, src)
+    d1, i1 = tt.query(moved, distance_upper_bound=gate, workers=-1)
+    k1 = np.isfinite(d1)
+    d2, i2 = ts.query((dst - t) @ R, distance_upper_bound=gate, workers=-1)
+    k2 = np.isfinite(d2)
+    if k1.sum() + k2.sum() < 6:
+        return None
+    P = np.vstack([moved[k1], moved[i2[k2]]])
+    Q = np.vstack([dst[i1[k1]], dst[k2]])
+    N = np.vstack([nt[i1[k1]], ns[i2[k2]] @ R.T])
+    r = np.einsum('ij,ij->i', Q - P, N)
+    w = s2 / (s2 + r * r)                           # sqrt of the Geman-McClure weight
+    J = np.hstack([np.cross(P, N), N]) * w[:, None]
+    JtJ = J.T @ J
+    return np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ (r * w))
+
+
+def step_transform(x: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of a Gauss-Newton update x = (rotation vector, translation)."""
+    dT = np.eye(4)
+    dT[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+    dT[:3, 3] = x[3:]
+    return dT
+
+
 def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float,
               scale: float, iterations: int = 20, tolerance: float = 3e-4
               ) -> tuple[np.ndarray, int, bool]:
@@ -214,27 +249,10 @@ def fine_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: floa
     it, converged = 0, False
     T = np.eye(4)                                  # the step from T0, source points moved by it
     for it in range(1, iterations + 1):
-        R, t = T[:3, :3], T[:3, 3]
-        moved = apply(T, src)
-        d1, i1 = tt.query(moved, distance_upper_bound=gate, workers=-1)
-        k1 = np.isfinite(d1)
-        back = (dst - t) @ R                       # the target in the source frame
-        d2, i2 = ts.query(back, distance_upper_bound=gate, workers=-1)
-        k2 = np.isfinite(d2)
-        if k1.sum() + k2.sum() < 6:
+        x = symmetric_plane_step(src, ns, ts, dst, nt, tt, T, gate, s2)
+        if x is None:
             break
-        P = np.vstack([moved[k1], moved[i2[k2]]])
-        Q = np.vstack([dst[i1[k1]], dst[k2]])
-        N = np.vstack([nt[i1[k1]], ns[i2[k2]] @ R.T])
-        r = np.einsum('ij,ij->i', Q - P, N)
-        w = np.sqrt((s2 / (s2 + r * r)) ** 2)      # sqrt of the Geman-McClure weight
-        J = np.hstack([np.cross(P, N), N]) * w[:, None]
-        JtJ = J.T @ J
-        x = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ (r * w))
-        dT = np.eye(4)
-        dT[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
-        dT[:3, 3] = x[3:]
-        T = dT @ T
+        T = step_transform(x) @ T
         if np.abs(x[:3]).max() < tolerance and np.abs(x[3:]).max() < 2e-2 * voxel:
             converged = True
             break
@@ -293,26 +311,10 @@ def surface_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: f
     gate, s2 = 3.0 * voxel, voxel * voxel
     it, converged = 0, False
     for it in range(1, iterations + 1):
-        R, t = T[:3, :3], T[:3, 3]
-        moved = apply(T, mu_s)
-        d1, i1 = tt.query(moved, distance_upper_bound=gate, workers=-1)
-        k1 = np.isfinite(d1)
-        d2, i2 = ts.query((mu_t - t) @ R, distance_upper_bound=gate, workers=-1)
-        k2 = np.isfinite(d2)
-        if k1.sum() + k2.sum() < 6:
+        x = symmetric_plane_step(mu_s, n_s, ts, mu_t, n_t, tt, T, gate, s2)
+        if x is None:
             break
-        P = np.vstack([moved[k1], moved[i2[k2]]])
-        Q = np.vstack([mu_t[i1[k1]], mu_t[k2]])
-        N = np.vstack([n_t[i1[k1]], n_s[i2[k2]] @ R.T])
-        r = np.einsum('ij,ij->i', Q - P, N)
-        w = s2 / (s2 + r * r)                       # sqrt of the Geman-McClure weight
-        J = np.hstack([np.cross(P, N), N]) * w[:, None]
-        JtJ = J.T @ J
-        x = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), J.T @ (r * w))
-        dT = np.eye(4)
-        dT[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
-        dT[:3, 3] = x[3:]
-        T = dT @ T
+        T = step_transform(x) @ T
         if np.abs(x[:3]).max() < tolerance:
             converged = True
             break
