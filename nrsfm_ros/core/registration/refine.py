@@ -299,8 +299,8 @@ def surface_pass(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: f
     scale of one ``voxel``.  Voxel-grid centroids (``icp_iterate``'s levels) carry a pose-
     dependent bias of the grid and average only a cell's few points: on the bunny at 30 deg,
     clean, noise 0.005, 8 seeds, the 4-2-1 x 0.01 point-to-plane levels end 0.155 deg off in
-    median (max 0.38), the 4 x level followed by this pass 0.038 (max 0.095), open3d GICP
-    0.14 in the same run.  ``converged``: the last step turned less than ``tolerance`` rad."""
+    median (max 0.38), the 4 and 2 x levels followed by this pass (6000 planes of 30
+    neighbours) 0.046 (max 0.082), open3d GICP 0.131 in the same run.  ``converged``: the last step turned less than ``tolerance`` rad."""
     def planes(X: np.ndarray, tree: cKDTree | None) -> tuple[np.ndarray, np.ndarray]:
         at = np.linspace(0, X.shape[0] - 1, min(points, X.shape[0])).astype(np.intp)
         return local_planes(X, k, tree, at)
