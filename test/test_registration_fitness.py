@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.registration import METHODS, register
-from nrsfm_ros.core.registration.base import inlier_stats, resolve_threshold
+from nrsfm_ros.core.registration.base import inlier_stats, resolve_threshold, robust_residual
 
 
 def _case():
@@ -43,6 +43,26 @@ def test_every_method_reports_the_same_fitness_and_inlier_rmse_on_a_known_case()
         assert res.inlier_rmse < 1e-4, (method, res.inlier_rmse)
         assert res.residual == res.inlier_rmse
         assert np.array_equal(res.correspondences >= 0, truth[0] >= 0), method
+
+
+def test_bounded_queries_equal_brute_force_distances():
+    """inlier_stats and robust_residual stop their searches at the threshold: the same
+    correspondences (mapped by ``index``), fitness, RMSE and residual as all distances."""
+    rng = np.random.default_rng(3)
+    tgt = rng.uniform(-1, 1, (400, 3))
+    src = np.vstack([tgt[:250] + rng.normal(0, 0.02, (250, 3)), rng.uniform(-2, 2, (150, 3))])
+    index = rng.permutation(1000)[:400]               # tree rows -> indices of a larger target
+    D = np.linalg.norm(src[:, None] - tgt[None], axis=2)
+    near, d = D.argmin(1), D.min(1)
+    for thr in (0.01, 0.05, 0.3):
+        corr, fit, rmse = inlier_stats(src, cKDTree(tgt), thr, index)
+        ok = d <= thr
+        assert 0 < ok.sum() < len(src)
+        assert np.array_equal(corr, np.where(ok, index[near], -1))
+        assert fit == pytest.approx(ok.mean())
+        assert rmse == pytest.approx(np.sqrt(np.mean(d[ok] ** 2)))
+        assert robust_residual(src, cKDTree(tgt), thr) == pytest.approx(
+            np.mean(np.minimum(d, thr) ** 2))
 
 
 @pytest.mark.parametrize('method', sorted(set(METHODS) - {'ecpd-rigid', 'ecpd-nonrigid'}))

@@ -208,6 +208,7 @@ def test_registrar_beats_the_identity_on_the_pipeline():
     ident = np.median(_rotation_errors(seq, {f: np.eye(4) for f in clouds}))
     ours, proc = _register_stream(seq, clouds, RegistrarParams())
     assert proc.status()['posed_by_track_id'] == str(len(clouds))
+    assert 0.5 < float(proc.status()['match_inliers']) <= 1.0
     nearest, _ = _register_stream(seq, clouds, RegistrarParams(match='nearest'))
     e_ours = np.median(_rotation_errors(seq, ours))
     e_nearest = np.median(_rotation_errors(seq, nearest))

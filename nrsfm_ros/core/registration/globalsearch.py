@@ -191,7 +191,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
 
     def score_of(T: np.ndarray, Y: np.ndarray = Ys) -> float:
         """Source points explained (soft count at 1% of the diagonal), per point of ``Y``."""
-        d = tree.query(Y @ T[:3, :3].T + T[:3, 3])[0]
+        d = tree.query(Y @ T[:3, :3].T + T[:3, 3], distance_upper_bound=0.01 * diag)[0]
         return float(np.clip(1 - d ** 2 / (0.01 * diag) ** 2, 0, None).mean())
 
     scores = np.zeros(len(starts))
@@ -258,8 +258,9 @@ def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
     best refined pose, its score)."""
     h2 = (0.01 * diag) ** 2
 
-    def soft(Q: np.ndarray) -> np.ndarray:
-        d = tree.query(Q.reshape(-1, 3), workers=-1)[0].reshape(Q.shape[:-1])
+    def soft(Q: np.ndarray) -> np.ndarray:     # zero beyond 1% of the diagonal: stop there
+        d = tree.query(Q.reshape(-1, 3), workers=-1, distance_upper_bound=0.01 * diag
+                       )[0].reshape(Q.shape[:-1])
         return np.clip(1 - d ** 2 / h2, 0, None)
 
     def turned(R: np.ndarray, X: np.ndarray) -> np.ndarray:     # R (h, 3, 3) about c
