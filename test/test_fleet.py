@@ -112,6 +112,34 @@ def crash_on_good1(job: BagJob) -> dict:
     return run_job(job)
 
 
+def where_am_i(job: BagJob) -> dict:
+    """A worker that reports its parent process, whether the pipeline was imported before the
+    job arrived and its BLAS thread variable (module level: it is pickled)."""
+    import sys
+    return {'bag': job.bag, 'out': job.out, 'status': 'ok', 'ppid': os.getppid(),
+            'preloaded': 'nrsfm_ros.pipeline' in sys.modules,
+            'blas': os.environ.get('OPENBLAS_NUM_THREADS')}
+
+
+def test_workers_fork_from_a_server_that_imported_the_pipeline(bags, tmp_path, monkeypatch):
+    import multiprocessing.forkserver
+
+    import nrsfm_ros.fleet as fleet
+    for v in fleet.THREAD_VARS:
+        monkeypatch.delenv(v, raising=False)
+    # a server an earlier test started (maybe with other variables) goes: this one starts it
+    getattr(multiprocessing.forkserver._forkserver, '_stop', lambda: None)()
+    monkeypatch.setattr(fleet, '_forkserver_env', None)
+    rep = process_bags([bags['good0'], bags['good1']], tmp_path / 'a', ['tracker'], jobs=2,
+                       worker=where_am_i)
+    for b in rep.bags:      # not children of this process: of the fork server
+        assert b['ppid'] != os.getpid() and b['preloaded'] and b['blas'] == '1'
+    # other thread settings than the server's: spawned workers, with those settings
+    rep = process_bags([bags['good0']], tmp_path / 'b', ['tracker'], jobs=1, threads=2,
+                       worker=where_am_i)
+    assert rep.bags[0]['ppid'] == os.getpid() and rep.bags[0]['blas'] == '2'
+
+
 def test_dead_worker_fails_only_its_bag(bags, tmp_path):
     done: list[str] = []
     rep = process_bags([bags['good0'], bags['good1']], tmp_path / 'o', ['tracker'], jobs=2,
