@@ -138,6 +138,10 @@ def _parser() -> argparse.ArgumentParser:
                     'of output bags even for one bag.  Put it after the bags or write '
                     '--ray=ADDRESS')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
+    pr.add_argument('--pipelined', action='store_true',
+                    help='one bag: each stage in its own process, pipelined (the same output '
+                    'messages; on 2 cores about 0.9x the wall time at 320x240, where the '
+                    "reconstructor's batch solve is the critical path)")
     pr.add_argument('--no-progress', action='store_true')
 
     t = add('topic', 'inspect live topics: list, echo, hz, info')
@@ -522,7 +526,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     if Path(args.out).exists():
         raise CliError(f'{args.out} exists; choose another --out or delete it')
     report = process_bag(bag, args.out, stages, params,
-                         progress=not args.no_progress, copy_inputs=args.copy_inputs)
+                         progress=not args.no_progress, copy_inputs=args.copy_inputs,
+                         pipelined=args.pipelined)
     d = report.as_dict()
     if args.report:
         write_report(report, args.report)

@@ -1,0 +1,307 @@
+"""``process`` with its stages in separate processes, so that one bag uses every core.
+
+Each stage is sequential in time; the stages are not: while the reconstructor solves a batch,
+the tracker goes on tracking and the registrar and scene_flow work on the clouds already
+published.  The stages form a chain of worker processes in graph order (tracker ->
+reconstructor -> registrar -> scene_flow); the main process reads the bag into the first and
+writes what leaves the last.  Every event (a bag message or a stage's output) travels down the
+chain; a stage handles the events routed to it (:data:`pipeline.ROUTES`) and passes its outputs
+on.  **Each stage sees its inputs in exactly the order of the one-process pipeline** (a
+depth-first walk: an output's consumers run before the next consumer of the message that caused
+it), so the outputs are the same messages: where a message has consumers further down the
+chain, a stage passes its own outputs of that message on first when it comes before those
+consumers in the message's route list, else after it (:func:`outputs_first`).
+
+Messages cross the process boundaries pickled (rosbags message classes pickle; NumPy arrays
+go as buffers).  The queues are bounded (``QUEUE_SIZE`` events), so a slow stage holds the
+reader back instead of the bag piling up in memory.  A stage process that dies is reported as
+a failure of its stage and the run ends with what was written.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .io.bag import BagWriter, bag_info, deserialize, read_messages
+from .io.errors import MessageError
+from .io.msgtypes import stamp_ns
+from .params import Params
+from .pipeline import ROUTES, STAGES, ProcessReport, _progress, make_processors
+from .processing import ReconstructorProcessor
+
+QUEUE_SIZE = 64          # events in flight between two processes
+POLL_S = 0.5             # how often a blocked process checks that the others are alive
+
+
+@dataclass
+class Event:
+    """One message on its way down the chain.  ``producer``: the stage that published it
+    ('' for a bag message); ``write``: the writer at the end writes it (every output; bag
+    messages with ``copy_inputs``); ``raw``: a bag message's serialized bytes (copied as
+    they are)."""
+
+    topic: str
+    msgtype: str
+    msg: Any
+    stamp: int
+    producer: str = ''
+    write: bool = False
+    raw: bytes | None = None
+
+
+@dataclass
+class StageDone:
+    """A stage's part of the report, sent down the chain after its last output."""
+
+    stage: str
+    timing: dict[str, dict[str, float]]
+    status: dict[str, str]
+    failures: list[dict[str, Any]]
+    cpu_s: float
+
+
+END = 'end'              # sent after the last bag message, and by each stage after its flush
+
+
+def chain_order(stages: Sequence[str]) -> list[str]:
+    """``stages`` in graph order (every stage after the stages whose outputs it takes)."""
+    return [s for s in STAGES if s in stages]
+
+
+def outputs_first(stage: str, topic: str, chain: Sequence[str]) -> bool:
+    """Whether ``stage`` passes its outputs of a ``topic`` message on before the message
+    itself: true unless a consumer of ``topic`` further down the chain comes before ``stage``
+    in the topic's route list (the one-process pipeline hands the message to that consumer
+    before it walks ``stage``'s outputs)."""
+    routes = [s for s, _ in ROUTES.get(topic, [])]
+    if stage not in routes:
+        return True
+    later = chain[chain.index(stage) + 1:]
+    return all(routes.index(s) > routes.index(stage) for s in later if s in routes)
+
+
+def _downstream_needs(topic: str, chain: Sequence[str], i: int) -> bool:
+    return any(s in chain[i + 1:] for s, _ in ROUTES.get(topic, []))
+
+
+def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
+                outq: Any) -> None:
+    """A stage process: handle the events routed to it, pass everything on in order.  Ctrl-C
+    is the main process' to handle (it ends the stages), not each stage's."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    proc = make_processors([stage], {stage: params} if params is not None else None)[stage]
+    proc.stats.timing_window = None
+    i = chain.index(stage)
+    kinds = {t: k for t, routes in ROUTES.items() for s, k in routes if s == stage}
+    failures: list[dict[str, Any]] = []
+    c0 = time.process_time()
+
+    def put(item: Any) -> None:
+        outq.put(item)
+
+    def outputs_of(outputs: list[Any], stamp: int) -> list[Event]:
+        return [Event(t, mt, m, stamp_ns(m.header) if hasattr(m, 'header') else stamp,
+                      producer=stage, write=True) for t, mt, m in outputs]
+
+    while True:
+        item = inq.get()
+        if isinstance(item, StageDone):
+            put(item)
+            continue
+        if item == END:
+            if isinstance(proc, ReconstructorProcessor):
+                tf, cf = time.perf_counter(), time.process_time()
+                try:
+                    flushed = proc.flush()
+                except Exception as err:  # noqa: BLE001 -- contained like every message
+                    flushed = []
+                    failures.append({'stage': 'reconstructor (flush)', 'topic': '',
+                                     'stamp_ns': 0, 'error': f'{type(err).__name__}: {err}'})
+                else:
+                    proc.stats.add_time('flush', time.perf_counter() - tf,
+                                        time.process_time() - cf)
+                for ev in outputs_of(flushed, 0):
+                    put(ev)
+            put(StageDone(stage, {k: t.summary() for k, t in proc.stats.timing.items()},
+                          proc.status(), failures, time.process_time() - c0))
+            put(END)
+            return
+        ev: Event = item
+        passed = ev.write or _downstream_needs(ev.topic, chain, i)
+        kind = kinds.get(ev.topic) if ev.msg is not None else None   # None: a copy to write
+        if kind is None:
+            if passed:
+                put(ev)
+            continue
+        try:
+            outs = outputs_of(proc.handle(kind, ev.msg), ev.stamp)
+        except MessageError as err:
+            failures.append({'stage': stage, 'topic': ev.topic, 'stamp_ns': ev.stamp,
+                             'error': str(err)})
+            outs = []
+        first = outputs_first(stage, ev.topic, chain)
+        for e in (outs + [ev] if first else [ev] + outs) if passed else outs:
+            put(e)
+
+
+def _context() -> Any:
+    """Fork from this process when it runs no other Python thread (it has imported the
+    stages already: the workers start at once); else a fork server, which starts clean."""
+    methods = multiprocessing.get_all_start_methods()
+    if 'fork' in methods and threading.active_count() == 1:
+        return multiprocessing.get_context('fork')
+    if 'forkserver' in methods:
+        ctx = multiprocessing.get_context('forkserver')
+        ctx.set_forkserver_preload(['nrsfm_ros.pipelined'])
+        return ctx
+    return multiprocessing.get_context('spawn')
+
+
+def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
+                          stages: Sequence[str] = STAGES,
+                          params: Mapping[str, Params] | None = None, storage: str = 'mcap',
+                          progress: bool = True, copy_inputs: bool = False) -> ProcessReport:
+    """:func:`pipeline.process_bag` with one process per stage (module doc): the same outputs
+    and report, in less wall time where there are cores to spare."""
+    chain = chain_order(stages)
+    make_processors(chain, params)          # parameter errors here, before any process
+    report = ProcessReport()
+    io_s = report.io_s
+    io_s.update(read=0.0, deserialize=0.0, write=0.0)
+    info = bag_info(in_path)
+    total = info['messages']
+    report.bag_duration_s = info['duration_s']
+    t0, c0 = time.perf_counter(), time.process_time()
+    ctx = _context()
+    queues = [ctx.Queue(QUEUE_SIZE) for _ in range(len(chain) + 1)]
+    procs = [ctx.Process(target=_stage_main, name=f'nrsfm-{s}', daemon=True,
+                         args=(s, (params or {}).get(s), chain, queues[k], queues[k + 1]))
+             for k, s in enumerate(chain)]
+    for p in procs:
+        p.start()
+    done: list[StageDone] = []
+    lost: list[str] = []             # stages whose process died
+    writer_error: list[BaseException] = []
+
+    def dead() -> list[str]:
+        return [s for s, p in zip(chain, procs) if p.exitcode not in (None, 0)]
+
+    def write_all(writer: BagWriter) -> None:
+        last = queues[-1]
+        while True:
+            try:
+                item = last.get(timeout=POLL_S)
+            except queue.Empty:
+                if dead():
+                    lost.extend(dead())
+                    return
+                continue
+            if item == END:
+                return
+            if isinstance(item, StageDone):
+                done.append(item)
+                continue
+            ev: Event = item
+            tw = time.perf_counter()
+            try:
+                writer.write(ev.topic, ev.msgtype, ev.raw if ev.raw is not None else ev.msg,
+                             ev.stamp)
+            except Exception as err:  # noqa: BLE001 -- e.g. a value the CDR type cannot hold
+                io_s['write'] += time.perf_counter() - tw
+                report.failures.append({'stage': f'{ev.producer} (write)', 'topic': ev.topic,
+                                        'stamp_ns': ev.stamp,
+                                        'error': f'{type(err).__name__}: {err}'})
+                continue
+            io_s['write'] += time.perf_counter() - tw
+            if ev.producer:
+                report.outputs[ev.topic] = report.outputs.get(ev.topic, 0) + 1
+
+    def send(item: Any) -> bool:
+        while True:
+            try:
+                queues[0].put(item, timeout=POLL_S)
+                return True
+            except queue.Full:
+                if dead() or lost or writer_error:
+                    return False
+
+    with BagWriter(out_path, storage) as writer:
+        def run_writer() -> None:
+            try:
+                write_all(writer)
+            except BaseException as err:  # noqa: BLE001 -- reported below
+                writer_error.append(err)
+
+        wt = threading.Thread(target=run_writer, name='nrsfm-writer', daemon=True)
+        wt.start()
+        consumed = {t for t in ROUTES if any(s in chain for s, _ in ROUTES[t])}
+        mark = time.perf_counter()
+        try:
+            for n, m in enumerate(read_messages(in_path, damage=report.damage)):
+                io_s['read'] += time.perf_counter() - mark
+                report.inputs[m.topic] = report.inputs.get(m.topic, 0) + 1
+                msg = None
+                if m.topic in ROUTES:
+                    td = time.perf_counter()
+                    try:
+                        msg = deserialize(m.raw, m.msgtype)
+                    except MessageError as err:
+                        report.failures.append({'stage': 'deserialize', 'topic': m.topic,
+                                                'stamp_ns': m.stamp_ns, 'error': str(err)})
+                    io_s['deserialize'] += time.perf_counter() - td
+                if copy_inputs:
+                    ok = send(Event(m.topic, m.msgtype, None, m.stamp_ns, write=True,
+                                    raw=bytes(m.raw)))
+                    if not ok:
+                        break
+                if msg is not None and m.topic in consumed and \
+                        not send(Event(m.topic, m.msgtype, msg, m.stamp_ns)):
+                    break
+                if progress:
+                    _progress(n + 1, total, t0)
+                mark = time.perf_counter()
+        except BaseException:      # Ctrl-C or a reader error: the stages end now, unflushed
+            for p in procs:
+                p.terminate()
+            wt.join()
+            raise
+        finally:
+            if all(p.exitcode is None for p in procs):
+                send(END)
+            wt.join()
+            for p in procs:
+                p.join(timeout=5 * POLL_S)
+                if p.is_alive():
+                    p.terminate()
+                    p.join()
+            for q in queues:       # what a dead stage never read must not block our exit
+                q.cancel_join_thread()
+                q.close()
+    if progress:
+        sys.stderr.write('\n')
+    for s in dict.fromkeys(lost + dead()):
+        code = procs[chain.index(s)].exitcode
+        report.failures.append({'stage': s, 'topic': '', 'stamp_ns': 0,
+                                'error': f'the {s} process died (exit code {code}); the '
+                                         'outputs after it are missing'})
+    if writer_error:
+        err = writer_error[0]
+        report.failures.append({'stage': 'writer', 'topic': '', 'stamp_ns': 0,
+                                'error': f'{type(err).__name__}: {err}'})
+    by_stage = {d.stage: d for d in done}
+    # the reader's (deserialize) and the writer's failures, then each stage's in chain order
+    report.failures += [f for s in chain if s in by_stage for f in by_stage[s].failures]
+    report.seconds = time.perf_counter() - t0
+    report.cpu_s = time.process_time() - c0 + sum(d.cpu_s for d in done)
+    report.timing = {s: by_stage[s].timing for s in chain if s in by_stage}
+    report.status = {s: by_stage[s].status for s in chain
+                     if s in by_stage and by_stage[s].status}
+    return report

@@ -1,0 +1,120 @@
+"""`process` with each stage in its own process (nrsfm_ros.pipelined): the same output bag as
+the one-process pipeline, message for message; a dead stage and Ctrl-C end it cleanly."""
+from __future__ import annotations
+
+import multiprocessing
+import os
+from pathlib import Path
+
+import pytest
+
+from nrsfm_ros import pipelined
+from nrsfm_ros.io.bag import read_messages
+from nrsfm_ros.pipeline import STAGES, process_bag
+from nrsfm_ros.pipelined import chain_order, outputs_first, process_bag_pipelined
+
+
+@pytest.fixture(scope='module')
+def bag(tmp_path_factory) -> Path:
+    from nrsfm_ros.io.sequence_bag import write_sequence_bag
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    d = tmp_path_factory.mktemp('pipelined') / 'in'
+    write_sequence_bag(generate(SynthConfig(surface='flag', width=96, height=72, frames=24,
+                                            fps=20.0, seed=1)), d)
+    return d
+
+
+def _messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    for m in read_messages(path):
+        out.setdefault(m.topic, []).append((m.stamp_ns, bytes(m.raw)))
+    return out
+
+
+def test_pipelined_writes_the_same_messages_as_one_process(bag, tmp_path):
+    seq = process_bag(bag, tmp_path / 'seq', progress=False, copy_inputs=True)
+    par = process_bag(bag, tmp_path / 'par', progress=False, copy_inputs=True, pipelined=True)
+    a, b = _messages(tmp_path / 'seq'), _messages(tmp_path / 'par')
+    assert set(a) == set(b) and len(a) > 10
+    for topic in a:       # per topic the same messages in the same order, byte for byte
+        assert a[topic] == b[topic], topic
+    assert par.outputs == seq.outputs and par.inputs == seq.inputs
+    assert par.failures == seq.failures == []
+    assert par.status == seq.status
+    calls = {s: {k: t['calls'] for k, t in kinds.items()} for s, kinds in par.timing.items()}
+    assert calls == {s: {k: t['calls'] for k, t in kinds.items()}
+                     for s, kinds in seq.timing.items()}
+    assert par.cpu_s > 0 and par.seconds > 0
+
+
+def test_process_cli_pipelined(bag, tmp_path, capsys):
+    from nrsfm_ros.cli import main
+    report = tmp_path / 'r.json'
+    assert main(['process', str(bag), '--out', str(tmp_path / 'o'), '--pipelined',
+                 '--pipeline', 'tracker,reconstructor', '--no-progress', '--report',
+                 str(report)]) == 0
+    out = capsys.readouterr().out
+    assert 'nrsfm/points: 24' in out and 'nrsfm/tracks: 24' in out
+    import json
+    assert set(json.loads(report.read_text())['timing']) == {'tracker', 'reconstructor'}
+
+
+def test_order_rule_follows_the_routes():
+    chain = chain_order(['scene_flow', 'tracker', 'registrar', 'reconstructor'])
+    assert chain == list(STAGES)
+    # the tracker's tracks of an image go down before the image (scene_flow takes both, and
+    # the one-process pipeline walks the tracker's outputs first) ...
+    assert outputs_first('tracker', 'camera/image_raw', chain)
+    # ... the reconstructor's outputs of an image (mode hdmnet) after it: scene_flow comes
+    # before the reconstructor in the image's routes
+    assert not outputs_first('reconstructor', 'camera/image_raw', chain)
+
+
+class _Dies:
+    """Wraps a processor: the process exits (as a crash would) at its 5th tracks message."""
+
+    def __init__(self, proc):
+        self.proc, self.n = proc, 0
+        self.stats = proc.stats
+
+    def handle(self, kind, msg):
+        if kind == 'tracks':
+            self.n += 1
+            if self.n == 5:
+                os._exit(3)
+        return self.proc.handle(kind, msg)
+
+    def status(self):
+        return self.proc.status()
+
+
+def test_a_dead_stage_is_reported_and_the_run_ends(bag, tmp_path, monkeypatch):
+    if 'fork' not in multiprocessing.get_all_start_methods():
+        pytest.skip('needs the fork start method (the patch must reach the stage process)')
+    real = pipelined.make_processors
+
+    def dying(stages, params=None, factory=None):
+        procs = real(stages, params, factory)
+        return {s: _Dies(p) if s == 'reconstructor' else p for s, p in procs.items()}
+    monkeypatch.setattr(pipelined, 'make_processors', dying)
+    monkeypatch.setattr(pipelined, '_context', lambda: multiprocessing.get_context('fork'))
+    rep = process_bag_pipelined(bag, tmp_path / 'o', progress=False)
+    died = [f for f in rep.failures if f['stage'] == 'reconstructor']
+    assert len(died) == 1 and 'process died (exit code 3)' in died[0]['error']
+    assert rep.outputs.get('nrsfm/tracks', 0) >= 4        # what got through was written
+    assert rep.outputs.get('nrsfm/points', 0) < 24
+    assert not multiprocessing.active_children()
+
+
+def test_ctrl_c_ends_every_stage_process(bag, tmp_path, monkeypatch):
+    real = pipelined.read_messages
+
+    def interrupted(path, *a, **k):
+        for i, m in enumerate(real(path, *a, **k)):
+            if i == 40:
+                raise KeyboardInterrupt
+            yield m
+    monkeypatch.setattr(pipelined, 'read_messages', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        process_bag_pipelined(bag, tmp_path / 'o', progress=False)
+    assert not multiprocessing.active_children()
