@@ -2,7 +2,7 @@
 <= 50 ms per frame after start-up at 320x240 on 2 cores).
 
     .venv/bin/python bench/bench_latency.py [--size 320x240] [--frames 40]
-        [--modes window,online,batch] [--json out.json]
+        [--modes window,online,batch] [--downsample 1,2] [--json out.json]
 
 A 30 deg flag render is fed frame by frame through the nodes' processors (no DDS): the tracker,
 then the reconstructor in every mode on the tracker's tracks.  'After start-up' excludes the
@@ -11,6 +11,8 @@ frames by default), so its per-frame cost is buffering only and its solve is the
 bench_pipeline.py.  ``--modes ''``: the tracker alone.  Next to the wall time (median, p95),
 the mean CPU time of the process per frame (``time.process_time``: every thread, not inflated
 by other work on the machine as the wall time is) and the frames per second of both.
+``--downsample 1,2``: a tracker row per value of the tracker's ``downsample`` (the reconstructor
+rows take the tracks of the first).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.io import image as img_io  # noqa: E402
 from nrsfm_ros.io.msgtypes import RosbagsFactory  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
-from nrsfm_ros.params import ReconstructorParams  # noqa: E402
+from nrsfm_ros.params import ReconstructorParams, TrackerParams  # noqa: E402
 from nrsfm_ros.processing import ReconstructorProcessor, TrackerProcessor  # noqa: E402
 
 MODES = ('window', 'online', 'batch')
@@ -41,8 +43,11 @@ def main() -> None:
     p.add_argument('--frames', type=int, default=40)
     p.add_argument('--modes', default=','.join(MODES),
                    help="reconstructor modes after the tracker, comma-separated ('': none)")
+    p.add_argument('--downsample', default='1',
+                   help="the tracker's downsample values, comma-separated (a row each)")
     a = p.parse_args()
     modes = [m for m in a.modes.split(',') if m]
+    factors = [int(v) for v in a.downsample.split(',') if v]
     for m in modes:
         if m not in MODES:
             p.error(f'--modes: {m!r} is not one of {", ".join(MODES)}')
@@ -50,20 +55,24 @@ def main() -> None:
     fac = RosbagsFactory()
     seq = generate(SynthConfig(surface='flag', width=w, height=h, frames=a.frames,
                                camera_motion_deg=30))
-    tracker = TrackerProcessor(fac)
+    trackers = {('tracker' if n == 1 else f'tracker downsample {n}'):
+                TrackerProcessor(fac, TrackerParams(downsample=n)) for n in factors}
     recs = {m: ReconstructorProcessor(fac, ReconstructorParams(mode=m)) for m in modes}
     info = img_io.make_camera_info(seq.K, w, h, fac, int(seq.stamps_ns[0]), 'cam')
     for r in recs.values():
         r.handle('camera_info', info)
-    ms: dict[str, list[float]] = {'tracker': [], **{m: [] for m in modes}}
+    ms: dict[str, list[float]] = {**{k: [] for k in trackers}, **{m: [] for m in modes}}
     cpu: dict[str, list[float]] = {k: [] for k in ms}
     for f in range(a.frames):
         msg = img_io.array_to_image(seq.images[f], 'rgb8', fac, int(seq.stamps_ns[f]), 'cam')
-        t, c = time.perf_counter(), time.process_time()
-        out = tracker.handle('image', msg)
-        ms['tracker'].append(1e3 * (time.perf_counter() - t))
-        cpu['tracker'].append(1e3 * (time.process_time() - c))
-        tracks = next(o[2] for o in out if o[0] == 'nrsfm/tracks')
+        tracks = None
+        for k, tracker in trackers.items():
+            t, c = time.perf_counter(), time.process_time()
+            out = tracker.handle('image', msg)
+            ms[k].append(1e3 * (time.perf_counter() - t))
+            cpu[k].append(1e3 * (time.process_time() - c))
+            if tracks is None:
+                tracks = next(o[2] for o in out if o[0] == 'nrsfm/tracks')
         for m, r in recs.items():
             t, c = time.perf_counter(), time.process_time()
             r.handle('tracks', tracks)
@@ -72,9 +81,9 @@ def main() -> None:
     start = ReconstructorParams().window + 1
     rows = []
     for name, v in ms.items():
-        first = 1 if name == 'tracker' else start
+        first = 1 if name in trackers else start
         after, after_cpu = np.array(v[first:]), np.array(cpu[name][first:])
-        rows.append({'stage': name if name == 'tracker' else f'reconstructor {name}',
+        rows.append({'stage': name if name in trackers else f'reconstructor {name}',
                      'median_ms': float(np.median(after)),
                      'p95_ms': float(np.percentile(after, 95)),
                      'max_ms': float(max(v)),

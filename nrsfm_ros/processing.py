@@ -248,6 +248,8 @@ class TrackerProcessor(Processor):
 
     def _make_tracker(self) -> ReferenceFlowTracker | MFOFTracker:
         p = self.params
+        if p.downsample > 1:        # stride counts full-image pixels
+            p = replace(p, stride=max(1, p.stride // p.downsample))
         if p.method == 'mfof':
             return MFOFTracker(p.mfof_config())
         return ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,
@@ -274,10 +276,12 @@ class TrackerProcessor(Processor):
         leave the tracker without a reference or force a re-selection onto them."""
         h, w = grey.shape
         if h < MIN_IMAGE_SIDE or w < MIN_IMAGE_SIDE:
-            raise MessageError('height/width', (h, w), f'image smaller than {MIN_IMAGE_SIDE} px')
+            raise MessageError('height/width', (h, w), f'image smaller than {MIN_IMAGE_SIDE} px'
+                               + (f' after downsample {self.params.downsample}'
+                                  if self.params.downsample > 1 else ''))
         p = self.params
         try:
-            reference_pixels(grey, p.mask, p.stride, p.min_std)
+            reference_pixels(grey, p.mask, max(1, p.stride // p.downsample), p.min_std)
         except ValueError as err:
             raise MessageError('data', 'untrackable frame', f'skipped: {err}') from err
 
@@ -289,19 +293,25 @@ class TrackerProcessor(Processor):
         return self._track(arr, enc, msg.header)
 
     def _track(self, arr: np.ndarray, encoding: str, header: Any) -> list[Output]:
-        grey = np.ascontiguousarray(img_io.to_mono8(arr, encoding), np.uint8)
+        full = np.ascontiguousarray(img_io.to_mono8(arr, encoding), np.uint8)
+        n = self.params.downsample
+        grey = shrink(full, n)
         self._check_trackable(grey)
         ref = self.tracker.reference
         if ref is not None and grey.shape != ref.shape:
             self.restart()          # a new image size starts a new reference
         tf = self.tracker.step(grey)
         ids = self.tracker.ids
+        if n > 1:
+            tf = replace(tf, uv=n * tf.uv + 0.5 * (n - 1),
+                         flow=enlarge_flow(tf.flow, n, full.shape))
+            ids = full_image_ids(ids, grey.shape, full.shape, n)
         if self._rgb is None or self._rgb.size != ids.size or tf.index == 0 \
                 or getattr(tf, 'reselected', False):
             # colour of each track where it is in this (reference) frame: carried tracks
             # sit at sub-pixel positions, new ones on the pixel grid
             rgb = img_io.to_rgb8(arr, encoding)
-            h, w = grey.shape
+            h, w = full.shape
             x = np.clip(np.rint(tf.uv[:, 0]).astype(np.int64), 0, w - 1)
             y = np.clip(np.rint(tf.uv[:, 1]).astype(np.int64), 0, h - 1)
             self._rgb = pc2.pack_rgb(rgb[y, x])
@@ -318,6 +328,41 @@ class TrackerProcessor(Processor):
                         img_io.array_to_image(np.ascontiguousarray(tf.flow, np.float32),
                                               '32FC2', self.factory, stamp, frame)))
         return out
+
+
+def shrink(grey: np.ndarray, n: int) -> np.ndarray:
+    """``grey`` shrunk by the integer factor ``n`` (the mean of each n x n block; a last
+    partial row or column of blocks is dropped)."""
+    if n == 1:
+        return grey
+    import cv2
+    h, w = grey.shape[0] // n, grey.shape[1] // n
+    return cv2.resize(grey[:h * n, :w * n], (w, h), interpolation=cv2.INTER_AREA)
+
+
+def enlarge_flow(flow: np.ndarray, n: int, shape: tuple[int, ...]) -> np.ndarray:
+    """A flow image (h, w, 2) of the image shrunk by ``n`` -> full-image pixels (H, W, 2): values
+    x n, resampled bilinearly at the full image's pixel centres (edge values beyond the last
+    whole block)."""
+    import cv2
+    H, W = shape[:2]
+    h, w = flow.shape[:2]
+    out = cv2.resize(np.ascontiguousarray(flow, np.float32), (w * n, h * n),
+                     interpolation=cv2.INTER_LINEAR) * np.float32(n)
+    return np.pad(out, ((0, H - h * n), (0, W - w * n), (0, 0)), mode='edge')
+
+
+def full_image_ids(ids: np.ndarray, small: tuple[int, int], full: tuple[int, int], n: int
+                   ) -> np.ndarray:
+    """The tracker's ids on the shrunk image (``epoch * h * w + y * w + x``) renamed as the
+    ids of the same epoch on the full image: the first pixel of each n x n block
+    (``epoch * H * W + n y * W + n x``), so that one pixel has one id whatever the factor."""
+    h, w = small
+    H, W = full[:2]
+    ids = np.asarray(ids, np.int64)
+    epoch, rem = np.divmod(ids, h * w)
+    y, x = np.divmod(rem, w)
+    return ((epoch * H * W + n * y * W + n * x) % 2 ** 32).astype(np.uint32)
 
 
 def to_metric(X: np.ndarray, t: np.ndarray, K: np.ndarray | None, mean_depth: float

@@ -42,3 +42,36 @@ def test_synth_ground_truth_is_consistent(seq):
     again = generate(SynthConfig(surface='face', width=192, height=144, frames=25))
     np.testing.assert_array_equal(again.images, seq.images)
     assert np.isnan(seq.depth[0]).any() and np.nanmin(seq.depth) > 0
+
+
+def test_tracker_processor_downsample_returns_full_image_tracks(seq):
+    """downsample 2: tracked on the half image, published in full-image pixels with the ids
+    of the full image's pixels (the ground truth's), about as accurate, same density."""
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.image import array_to_image, image_to_array
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import TrackerParams
+    from nrsfm_ros.processing import TrackerProcessor, full_image_ids
+    fac = RosbagsFactory()
+    runs = {}
+    for n in (1, 2):
+        proc = TrackerProcessor(fac, TrackerParams(downsample=n))
+        uv, flow = [], None
+        for f, im in enumerate(seq.images):
+            out = dict((t, m) for t, _, m in proc.handle(
+                'image', array_to_image(im, 'rgb8', fac, int(seq.stamps_ns[f]), 'cam')))
+            tr = out['nrsfm/tracks']
+            uv.append(pc2.read_fields(tr, ('u', 'v'), np.float64).T)
+            ids = pc2.read_fields(tr, ('track_id',), np.uint32)[:, 0]
+            flow = image_to_array(out['nrsfm/flow'])
+        common, ia, ib = np.intersect1d(ids, seq.track_ids, return_indices=True)
+        assert flow.shape == (144, 192, 2)
+        runs[n] = (ids.size, common.size, track_error_px(np.concatenate(uv)[:, ia],
+                                                         seq.W[:, ib], seq.V[:, ib]))
+    (n1, c1, e1), (n2, c2, e2) = runs[1], runs[2]
+    assert c2 > 0.9 * c1                       # ids name ground-truth (full-image) pixels
+    assert 0.6 * n1 < n2 < 1.4 * n1            # stride counted in full-image pixels
+    assert e2 < max(2.5 * e1, 1.0), (e1, e2)   # positions in full-image pixels
+    # the renaming: epoch 1, pixel (x 3, y 2) of a 10 x 8 half image -> (6, 4) of 20 x 16
+    assert full_image_ids(np.array([80 + 2 * 10 + 3]), (8, 10), (16, 20), 2)[0] == \
+        320 + 4 * 20 + 6
