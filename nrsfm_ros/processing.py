@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from .core.nrsfm.stream import StreamNRSfM, StreamShape
 from .core.nrsfm.spva import ShapePrior
+from .core.arrays import duplicates
 from .core.depth import depth_image
 from .core import hdmnet as hdmnet_core
 from .core.registration import register
@@ -879,6 +880,7 @@ class SceneFlowProcessor(Processor):
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque()
         self._times: deque[float] = deque()       # the history's stamps (s)
         self._weights: tuple[np.ndarray, np.ndarray] | None = None
+        self._nb: tuple[np.ndarray, np.ndarray] | None = None   # flow ids, neighbour index
         self._last: tuple[float, float] | None = None   # shrinkage factor, jitter of the last
         self._reset_msf()
 
@@ -903,6 +905,7 @@ class SceneFlowProcessor(Processor):
             self._history.clear()
             self._times.clear()
             self._weights = None
+            self._nb = None
             self._reset_msf()
 
     # ---------------------------------------------------------------- msf (RGB-D)
@@ -985,11 +988,11 @@ class SceneFlowProcessor(Processor):
         vis = (np.clip(np.nan_to_num(pc2.read_fields(msg, ('visibility',), np.float64)[:, 0]),
                        0.0, 1.0) if 'visibility' in pc2.field_names(msg) else np.ones(ids.size))
         ok = np.isfinite(X).all(axis=1)
-        X, ids, vis = X[ok], ids[ok], vis[ok]
+        X, ids, vis = X[ok].astype(np.float64), ids[ok].astype(np.int64), vis[ok]
         stamp = stamp_ns(msg.header)
         prev = self._prev
-        if np.unique(ids).size != ids.size:
-            raise MessageError('track_id', f'{ids.size - np.unique(ids).size} duplicated',
+        if duplicates(ids):
+            raise MessageError('track_id', f'{duplicates(ids)} duplicated',
                                'track ids of a cloud must be unique')
         p = self.params
         if prev is None or stamp <= prev[0]:
@@ -999,6 +1002,7 @@ class SceneFlowProcessor(Processor):
             self._history.clear()
             self._times.clear()
             self._weights = None
+            self._nb = None
         else:
             dt = (stamp - prev[0]) * 1e-9
             if p.frame == 'camera':
@@ -1010,13 +1014,13 @@ class SceneFlowProcessor(Processor):
                 R, t, self._weights = object_poses(
                     window, iterations=p.iterations if self._weights is None else
                     p.warm_iterations, softness=p.softness, prior=self._weights,
-                    return_weights=True, max_points=p.pose_points)
-                sf = pair_flow((prev[1], prev[2].astype(np.int64)), (X, ids.astype(np.int64)),
+                    return_weights=True, max_points=p.pose_points, assume_checked=True)
+                sf = pair_flow((prev[1], prev[2]), (X, ids),
                                motion_between(R, t, len(window) - 2, len(window) - 1), dt)
             out_vis = np.minimum(_lookup(prev[2], prev[3], sf.ids), _lookup(ids, vis, sf.ids))
             if p.frame == 'object' and p.shrinkage == 'jitter':
                 sf = shrunk(sf, window, R, t, dt, [*self._times, stamp * 1e-9],
-                            visibility=out_vis)
+                            visibility=out_vis, index=self._neighbours(sf))
                 self._last = (sf.shrinkage, sf.jitter)
             pts, v, out_ids = sf.points, sf.velocity, sf.ids
         self._prev = (stamp, X, ids, vis)
@@ -1026,6 +1030,17 @@ class SceneFlowProcessor(Processor):
             self._history.popleft()
             self._times.popleft()
         return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id), out_vis)
+
+    def _neighbours(self, sf: Any) -> np.ndarray:
+        """The shrinkage's neighbourhoods (nrsfm_flow.neighbour_index), found in the first
+        cloud of a track set and kept while the flow's track ids stay the same (a stream's
+        track set changes at the tracker's re-selections and the reconstructor's batches):
+        neighbours on the surface stay neighbours while it deforms, and the k-d query of every
+        point was 70% of this node's time at 30k points."""
+        from .core.sceneflow.nrsfm_flow import neighbour_index
+        if self._nb is None or not np.array_equal(self._nb[0], sf.ids):
+            self._nb = (sf.ids, neighbour_index(sf.points))
+        return self._nb[1]
 
     def _outputs(self, pts: np.ndarray, v: np.ndarray, ids: np.ndarray, stamp: int,
                  frame: str, visibility: np.ndarray | None = None) -> list[Output]:

@@ -209,6 +209,33 @@ def test_jitter_variance_and_shrink_factor_known_answers():
     np.testing.assert_allclose(a[:50], 1 - 0.06)
     np.testing.assert_allclose(a[50:], 0.0)
     assert np.all(shrink_factor(d, None, X) == 0)
+    # the neighbourhoods given (found once for a track set) give the same factors
+    from nrsfm_ros.core.sceneflow.nrsfm_flow import neighbour_index
+    nb = neighbour_index(X, 16)
+    assert nb.shape == (100, 16) and (nb[:50] < 50).all() and (nb[50:] >= 50).all()
+    np.testing.assert_array_equal(shrink_factor(d, 0.01, index=nb), a)
+    with pytest.raises(ValueError, match='index'):
+        shrink_factor(d, 0.01, index=nb[:10])
+
+
+def test_node_finds_the_neighbourhoods_once_per_track_set(monkeypatch):
+    """The scene_flow node keeps the shrinkage's k-d neighbourhoods while the flow's track ids
+    stay the same and finds them again when they change."""
+    import nrsfm_ros.core.sceneflow.nrsfm_flow as nf
+    from nrsfm_ros.processing import SceneFlowProcessor
+    calls = []
+    real = nf.neighbour_index
+    monkeypatch.setattr(nf, 'neighbour_index', lambda P, k=16: calls.append(len(P)) or real(P, k))
+    rng = np.random.default_rng(2)
+    X0 = rng.normal(size=(400, 3)) * [1, 1, 0.1] + [0, 0, 4]
+    proc = SceneFlowProcessor(RosbagsFactory())
+    for f in range(8):
+        ids = np.arange(400 if f < 5 else 300, dtype=np.uint32)   # a new track set at f = 5
+        X = (X0[:ids.size] + 0.01 * f * rng.normal(size=(ids.size, 3))).astype(np.float32)
+        proc.handle('points', pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
+                                          'track_id': ids}, RosbagsFactory(),
+                                         f * 100_000_000, 'cam'))
+    assert calls == [400, 300]
 
 
 def test_pure_jitter_gives_near_zero_flow():

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.arrays import duplicates
 from .errors import MessageError
 from .msgtypes import MsgFactory
 
@@ -285,7 +286,7 @@ def check_cloud(msg: Any, required: Sequence[str], optional: Sequence[str] = (),
                                'track ids must be an integer field of at most 32 bits')
     if 'track_id' in used and points.size:
         ids = points['track_id']
-        unique = np.unique(ids).size
-        if unique != ids.size:
-            raise MessageError('track_id', f'{ids.size - unique} duplicate(s)',
+        dup = duplicates(ids)
+        if dup:
+            raise MessageError('track_id', f'{dup} duplicate(s)',
                                'track ids must be unique within a cloud')

@@ -45,6 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..arrays import duplicates, sorted_unique
 Cloud = tuple[np.ndarray, np.ndarray]   # (N, 3) points, (N,) unique track ids
 
 
@@ -85,8 +86,8 @@ def _check_cloud(X: np.ndarray, ids: np.ndarray, name: str) -> tuple[np.ndarray,
     if X.ndim != 2 or X.shape != (len(ids), 3):
         raise ValueError(f'{name}: expected (N, 3) points and N ids, got {X.shape} and '
                          f'{ids.shape}')
-    if np.unique(ids).size != len(ids):
-        raise ValueError(f'{name}: {len(ids) - np.unique(ids).size} duplicated track id(s); '
+    if duplicates(ids):
+        raise ValueError(f'{name}: {duplicates(ids)} duplicated track id(s); '
                          'ids must be unique')
     return X, ids
 
@@ -101,7 +102,8 @@ def _count(v: object, lo: int) -> bool:
 
 def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float = 0.1,
                  min_points: int = 3, prior: tuple[np.ndarray, np.ndarray] | None = None,
-                 return_weights: bool = False, max_points: int = 0):
+                 return_weights: bool = False, max_points: int = 0,
+                 assume_checked: bool = False):
     """Camera poses of a window of clouds in one object frame: (R (F, 3, 3), t (F, 3)) with
     ``X_f ~ R_f Z + t_f`` for the template Z, frame 0's pose the identity.
 
@@ -114,7 +116,9 @@ def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float =
     ``prior`` (ids, weights): start from these per-track weights instead of uniform ones (a
     warm start from the previous window; fewer ``iterations`` are then needed).
     ``return_weights``: also return (ids, weights) of the last re-weighting.
-    ``max_points`` > 0: fit on about that many tracks (a fixed pseudo-random subset of the ids)."""
+    ``max_points`` > 0: fit on about that many tracks (a fixed pseudo-random subset of the ids).
+    ``assume_checked``: the clouds are already (N, 3) float64 points with unique int64 ids (a node
+    checks each cloud once on arrival, not again in every window it is part of)."""
     for name, value, ok, want in (
             ('iterations', iterations, _count(iterations, 0), 'an integer >= 0'),
             ('softness', softness, _number(softness) and softness > 0, 'a finite number > 0'),
@@ -125,8 +129,13 @@ def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float =
     F = len(clouds)
     if F == 0:
         raise ValueError('clouds: expected at least one cloud')
-    checked = [_check_cloud(X, i, f'clouds[{k}]') for k, (X, i) in enumerate(clouds)]
-    uid = np.unique(np.concatenate([i for _, i in checked]))
+    checked = list(clouds) if assume_checked else [_check_cloud(X, i, f'clouds[{k}]')
+                                                   for k, (X, i) in enumerate(clouds)]
+    first = checked[0][1]
+    if all(np.array_equal(i, first) for _, i in checked[1:]):   # one track set: the usual case
+        uid = sorted_unique(first)
+    else:
+        uid = sorted_unique(np.concatenate([i for _, i in checked]))
     if max_points and uid.size > max_points:
         # a fixed pseudo-random subset of the track ids (the same track stays in or out from
         # one window to the next): the poses need a few thousand points, not every one
@@ -247,39 +256,52 @@ def jitter_variance(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray,
     return float((resid ** 2).sum() / ((w - degree - 1) * flat.shape[1]))
 
 
+def neighbour_index(points: np.ndarray, neighbours: int = NEIGHBOURS) -> np.ndarray:
+    """(N, k) indices of the ``neighbours`` nearest points of each of ``points`` (N, 3), itself
+    included (k = min(neighbours, N))."""
+    from scipy.spatial import cKDTree
+    pts = np.asarray(points, np.float64)
+    k = min(max(int(neighbours), 1), len(pts))
+    _, nb = cKDTree(pts).query(pts, k, workers=-1)
+    return nb.reshape(len(pts), k)
+
+
 def shrink_factor(displacement: np.ndarray, sigma2: float | None,
-                  points: np.ndarray | None = None, neighbours: int = NEIGHBOURS
-                  ) -> float | np.ndarray:
+                  points: np.ndarray | None = None, neighbours: int = NEIGHBOURS,
+                  index: np.ndarray | None = None) -> float | np.ndarray:
     """Positive-part James-Stein factor ``max(0, 1 - 6 sigma2 / mean |d|^2)`` of raw
     displacements ``d`` (N, 3) whose per-coordinate position jitter has variance ``sigma2``
     (None: unknown -> 0, zero flow).  With ``points`` (N, 3): one factor per point, the mean
     over its ``neighbours`` nearest points (itself included; all if fewer), so that a moving
-    part of a still surface keeps its motion."""
+    part of a still surface keeps its motion; ``index`` (N, k): those neighbours given
+    (:func:`neighbour_index`, e.g. kept while a stream's track set stays the same)."""
     d2 = np.sum(np.asarray(displacement, np.float64) ** 2, axis=1)
-    if points is None:
+    if points is None and index is None:
         if sigma2 is None or not d2.size or d2.mean() <= 0:
             return 0.0
         return float(max(0.0, 1.0 - 6.0 * sigma2 / d2.mean()))
     if sigma2 is None or not d2.size:
         return np.zeros(d2.size)
-    from scipy.spatial import cKDTree
-    k = min(max(int(neighbours), 1), d2.size)
-    _, nb = cKDTree(np.asarray(points, np.float64)).query(points, k)
-    power = d2[nb.reshape(d2.size, k)].mean(axis=1)
+    nb = neighbour_index(points, neighbours) if index is None else np.asarray(index)
+    if nb.ndim != 2 or nb.shape[0] != d2.size:
+        raise ValueError(f'index: expected ({d2.size}, k) neighbour indices, got {nb.shape}')
+    power = d2[nb].mean(axis=1)
     with np.errstate(divide='ignore'):
         return np.where(power > 0, np.clip(1.0 - 6.0 * sigma2 / power, 0.0, 1.0), 0.0)
 
 
 def shrunk(sf: SceneFlow, clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, dt: float,
            times: Sequence[float] | None = None, neighbours: int = NEIGHBOURS,
-           visibility: np.ndarray | None = None) -> SceneFlow:
+           visibility: np.ndarray | None = None, index: np.ndarray | None = None
+           ) -> SceneFlow:
     """``sf`` (the flow of the last two of ``clouds``, poses R, t) scaled per point by
     :func:`shrink_factor` of its displacements over ``neighbours`` nearest points and
     :func:`jitter_variance` of the window, times ``visibility`` (N,) in [0, 1] where given (the
     smaller of the point's in the two clouds: an occluded point's position is a fill-in, not a
-    measurement); ``shrinkage`` the mean factor."""
+    measurement); ``shrinkage`` the mean factor.  ``index``: the neighbours, if known
+    (:func:`shrink_factor`)."""
     s2 = jitter_variance(clouds, R, t, times)
-    a = shrink_factor(sf.velocity * dt, s2, sf.points, neighbours)
+    a = shrink_factor(sf.velocity * dt, s2, sf.points, neighbours, index)
     if visibility is not None:
         w = np.asarray(visibility, np.float64)
         if w.shape != a.shape or not np.all((w >= 0) & (w <= 1)):

@@ -1,0 +1,16 @@
+"""core.arrays: the sort-based unique and duplicate count equal NumPy's definitions."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nrsfm_ros.core.arrays import duplicates, sorted_unique
+
+
+@pytest.mark.parametrize('a', [np.array([], np.uint32), np.array([7], np.int64),
+                               np.array([3, 1, 3, 3, 2, 1], np.uint32),
+                               np.random.default_rng(0).integers(0, 500, 2000)])
+def test_sorted_unique_and_duplicates_match_numpy(a):
+    np.testing.assert_array_equal(sorted_unique(a), np.unique(a))
+    assert sorted_unique(a).dtype == a.dtype
+    assert duplicates(a) == a.size - np.unique(a).size
