@@ -20,6 +20,7 @@ a failure of its stage and the run ends with what was written.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import queue
 import signal
 import sys
@@ -97,6 +98,7 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
     """A stage process: handle the events routed to it, pass everything on in order.  Ctrl-C
     is the main process' to handle (it ends the stages), not each stage's."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a forked parent's handler (rclpy) goes
     proc = make_processors([stage], {stage: params} if params is not None else None)[stage]
     proc.stats.timing_window = None
     i = chain.index(stage)
@@ -152,17 +154,40 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
             put(e)
 
 
+def _single_threaded() -> bool:
+    """Whether this process runs one OS thread (native ones included: a DDS participant's, a
+    BLAS pool's), so that a fork cannot copy a lock another thread holds."""
+    try:
+        return len(os.listdir('/proc/self/task')) == 1
+    except OSError:
+        return False
+
+
 def _context() -> Any:
-    """Fork from this process when it runs no other Python thread (it has imported the
-    stages already: the workers start at once); else a fork server, which starts clean."""
+    """Fork from this process when it runs a single OS thread (it has imported the stages
+    already: the workers start at once); else a fork server, which starts clean (a fork of a
+    process with DDS threads can deadlock in the child: seen in the test suite after rclpy
+    tests)."""
     methods = multiprocessing.get_all_start_methods()
-    if 'fork' in methods and threading.active_count() == 1:
+    if 'fork' in methods and _single_threaded():
         return multiprocessing.get_context('fork')
     if 'forkserver' in methods:
         ctx = multiprocessing.get_context('forkserver')
         ctx.set_forkserver_preload(['nrsfm_ros.pipelined'])
         return ctx
     return multiprocessing.get_context('spawn')
+
+
+def _reap(procs: list[Any]) -> None:
+    """Wait for the stage processes; one that has not ended is terminated, then killed."""
+    for p in procs:
+        p.join(timeout=5 * POLL_S)
+        if p.is_alive():
+            p.terminate()
+            p.join(timeout=5 * POLL_S)
+        if p.is_alive():
+            p.kill()
+            p.join()
 
 
 def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
@@ -272,16 +297,13 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
             for p in procs:
                 p.terminate()
             wt.join()
+            _reap(procs)
             raise
         finally:
             if all(p.exitcode is None for p in procs):
                 send(END)
             wt.join()
-            for p in procs:
-                p.join(timeout=5 * POLL_S)
-                if p.is_alive():
-                    p.terminate()
-                    p.join()
+            _reap(procs)
             for q in queues:       # what a dead stage never read must not block our exit
                 q.cancel_join_thread()
                 q.close()

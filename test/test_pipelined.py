@@ -118,3 +118,20 @@ def test_ctrl_c_ends_every_stage_process(bag, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         process_bag_pipelined(bag, tmp_path / 'o', progress=False)
     assert not multiprocessing.active_children()
+
+
+def test_no_fork_from_a_process_with_other_threads(bag, tmp_path, rclpy_context):
+    """A process with DDS threads (rclpy) forks no stage: its locks could be copied held (a
+    child deadlocked in the full suite); the stages come from a clean fork server instead and
+    the run ends with the same outputs."""
+    import rclpy
+    node = rclpy.create_node('pipelined_probe', context=rclpy_context)
+    try:
+        assert not pipelined._single_threaded()
+        assert pipelined._context().get_start_method() != 'fork'
+        rep = process_bag_pipelined(bag, tmp_path / 'o', ('tracker', 'reconstructor'),
+                                    progress=False)
+    finally:
+        node.destroy_node()
+    assert rep.outputs['nrsfm/points'] == 24 and rep.failures == []
+    assert not multiprocessing.active_children()
