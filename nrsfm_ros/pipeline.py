@@ -68,6 +68,14 @@ class ProcessReport:
                 'status': self.status}
 
 
+def new_report(in_path: str | Path) -> tuple[ProcessReport, int]:
+    """An empty report for the bag (its duration, zeroed I/O times) and its message count."""
+    info = bag_info(in_path)
+    report = ProcessReport(bag_duration_s=info['duration_s'])
+    report.io_s.update(read=0.0, deserialize=0.0, write=0.0)
+    return report, info['messages']
+
+
 def make_processors(stages: Sequence[str], params: Mapping[str, Params] | None = None,
                     factory: Any = None) -> dict[str, Processor]:
     factory = factory or RosbagsFactory()
@@ -97,12 +105,8 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
     procs = make_processors(stages, params)
     for proc in procs.values():
         proc.stats.timing_window = None          # the report's percentiles cover every call
-    report = ProcessReport()
+    report, total = new_report(in_path)
     io_s = report.io_s
-    io_s.update(read=0.0, deserialize=0.0, write=0.0)
-    info = bag_info(in_path)
-    total = info['messages']
-    report.bag_duration_s = info['duration_s']
     t0, c0 = time.perf_counter(), time.process_time()
 
     def feed(topic: str, msg: Any, stamp: int, writer: BagWriter) -> None:

@@ -31,11 +31,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .io.bag import BagWriter, bag_info, deserialize, read_messages
+from .io.bag import BagWriter, deserialize, read_messages
 from .io.errors import MessageError
 from .io.msgtypes import stamp_ns
 from .params import Params
-from .pipeline import ROUTES, STAGES, ProcessReport, _progress, make_processors
+from .pipeline import ROUTES, STAGES, ProcessReport, _progress, make_processors, new_report
 from .processing import ReconstructorProcessor
 
 QUEUE_SIZE = 64          # events in flight between two processes
@@ -198,12 +198,8 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
     and report, in less wall time where there are cores to spare."""
     chain = chain_order(stages)
     make_processors(chain, params)          # parameter errors here, before any process
-    report = ProcessReport()
+    report, total = new_report(in_path)
     io_s = report.io_s
-    io_s.update(read=0.0, deserialize=0.0, write=0.0)
-    info = bag_info(in_path)
-    total = info['messages']
-    report.bag_duration_s = info['duration_s']
     t0, c0 = time.perf_counter(), time.process_time()
     ctx = _context()
     queues = [ctx.Queue(QUEUE_SIZE) for _ in range(len(chain) + 1)]
