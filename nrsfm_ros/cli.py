@@ -520,6 +520,9 @@ def cmd_process(args: argparse.Namespace) -> int:
                        'the bags or write --ray=HOST:PORT')
     params = load_params(args.params)
     if len(args.bag) > 1 or args.ray is not None:
+        if args.pipelined:
+            raise CliError('--pipelined: one bag only; several bags (or --ray) already run '
+                           'one worker per bag (--jobs)')
         return _process_many(args, stages, params)
     bag = args.bag[0]
     bag_info(bag)               # not a bag: one error line before anything is written

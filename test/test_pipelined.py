@@ -59,6 +59,13 @@ def test_process_cli_pipelined(bag, tmp_path, capsys):
     assert set(json.loads(report.read_text())['timing']) == {'tracker', 'reconstructor'}
 
 
+def test_pipelined_is_for_one_bag(bag, tmp_path, capsys):
+    from nrsfm_ros.cli import main
+    rc = main(['process', str(bag), str(bag), '--out', str(tmp_path / 'o'), '--pipelined'])
+    assert rc != 0 and '--pipelined: one bag only' in capsys.readouterr().err
+    assert not (tmp_path / 'o').exists()
+
+
 def test_order_rule_follows_the_routes():
     chain = chain_order(['scene_flow', 'tracker', 'registrar', 'reconstructor'])
     assert chain == list(STAGES)
