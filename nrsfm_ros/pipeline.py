@@ -76,6 +76,22 @@ def new_report(in_path: str | Path) -> tuple[ProcessReport, int]:
     return report, info['messages']
 
 
+def read_input(m: Any, report: ProcessReport) -> Any | None:
+    """The bag message ``m`` deserialized where a stage takes its topic (timed in the report's
+    ``io_s``); None for other topics, and, with the failure recorded, where it cannot be read."""
+    if m.topic not in ROUTES:
+        return None
+    td = time.perf_counter()
+    try:
+        return deserialize(m.raw, m.msgtype)
+    except MessageError as err:
+        report.failures.append({'stage': 'deserialize', 'topic': m.topic,
+                                'stamp_ns': m.stamp_ns, 'error': str(err)})
+        return None
+    finally:
+        report.io_s['deserialize'] += time.perf_counter() - td
+
+
 def make_processors(stages: Sequence[str], params: Mapping[str, Params] | None = None,
                     factory: Any = None) -> dict[str, Processor]:
     factory = factory or RosbagsFactory()
@@ -147,17 +163,9 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
                 tw = time.perf_counter()
                 writer.write(m.topic, m.msgtype, m.raw, m.stamp_ns)
                 io_s['write'] += time.perf_counter() - tw
-            if m.topic in ROUTES:
-                td = time.perf_counter()
-                try:
-                    msg = deserialize(m.raw, m.msgtype)
-                except MessageError as err:
-                    report.failures.append({'stage': 'deserialize', 'topic': m.topic,
-                                            'stamp_ns': m.stamp_ns, 'error': str(err)})
-                    msg = None
-                io_s['deserialize'] += time.perf_counter() - td
-                if msg is not None:
-                    feed(m.topic, msg, m.stamp_ns, writer)
+            msg = read_input(m, report)
+            if msg is not None:
+                feed(m.topic, msg, m.stamp_ns, writer)
             if progress:
                 _progress(i + 1, total, t0)
             mark = time.perf_counter()

@@ -31,11 +31,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .io.bag import BagWriter, deserialize, read_messages
+from .io.bag import BagWriter, read_messages
 from .io.errors import MessageError
 from .io.msgtypes import stamp_ns
 from .params import Params
-from .pipeline import ROUTES, STAGES, ProcessReport, _progress, make_processors, new_report
+from .pipeline import (ROUTES, STAGES, ProcessReport, _progress, make_processors, new_report,
+                       read_input)
 from .processing import ReconstructorProcessor
 
 QUEUE_SIZE = 64          # events in flight between two processes
@@ -269,15 +270,7 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
             for n, m in enumerate(read_messages(in_path, damage=report.damage)):
                 io_s['read'] += time.perf_counter() - mark
                 report.inputs[m.topic] = report.inputs.get(m.topic, 0) + 1
-                msg = None
-                if m.topic in ROUTES:
-                    td = time.perf_counter()
-                    try:
-                        msg = deserialize(m.raw, m.msgtype)
-                    except MessageError as err:
-                        report.failures.append({'stage': 'deserialize', 'topic': m.topic,
-                                                'stamp_ns': m.stamp_ns, 'error': str(err)})
-                    io_s['deserialize'] += time.perf_counter() - td
+                msg = read_input(m, report)
                 if copy_inputs:
                     ok = send(Event(m.topic, m.msgtype, None, m.stamp_ns, write=True,
                                     raw=bytes(m.raw)))
