@@ -21,8 +21,8 @@ from .core.arrays import duplicates
 from .core.depth import depth_image
 from .core import hdmnet as hdmnet_core
 from .core.registration import register
-from .core.registration.base import (DEFAULT_INLIER_FRACTION, RegistrationResult, apply,
-                                     diagonal, make_result, robust_residual)
+from .core.registration.base import (RegistrationResult, apply, make_result, resolve_threshold,
+                                     robust_residual)
 from .core.registration.rays import (MIN_INLIER_FRACTION, MIN_MATCHES, invert,
                                      mirror_along_rays, ray_cost, ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
@@ -668,7 +668,7 @@ class RegistrarProcessor(Processor):
         tree = cKDTree(ref)
         # everything read and checked: now the state changes, all at once
         self.reference, self.reference_ids, self._tree = ref, ids, tree
-        self._diagonal = diagonal(ref)
+        self._thr: tuple[float, float] | None = None    # (parameter, resolved threshold)
         self.reference_frame = str(msg.header.frame_id)
         self._checks, self._last_T, self._mirror_evidence = 0, None, 0.0
         self.last_reflected = False
@@ -714,9 +714,12 @@ class RegistrarProcessor(Processor):
                                str(msg.header.frame_id)))]
 
     def _threshold(self) -> float:
-        """``inlier_threshold`` in metres (0: 2% of the reference's diagonal, computed once)."""
+        """``inlier_threshold`` resolved against the reference (base.resolve_threshold), once
+        per reference and parameter value."""
         t = self.params.inlier_threshold
-        return float(t) if t > 0 else max(DEFAULT_INLIER_FRACTION * self._diagonal, 1e-12)
+        if self._thr is None or self._thr[0] != t:
+            self._thr = (t, resolve_threshold(self.reference, t))
+        return self._thr[1]
 
     def _pose_by_track_id(self, src: np.ndarray, ids: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -991,8 +994,9 @@ class SceneFlowProcessor(Processor):
         X, ids, vis = X[ok].astype(np.float64), ids[ok].astype(np.int64), vis[ok]
         stamp = stamp_ns(msg.header)
         prev = self._prev
-        if duplicates(ids):
-            raise MessageError('track_id', f'{duplicates(ids)} duplicated',
+        dup = duplicates(ids)
+        if dup:
+            raise MessageError('track_id', f'{dup} duplicated',
                                'track ids of a cloud must be unique')
         p = self.params
         if prev is None or stamp <= prev[0]:
