@@ -130,6 +130,32 @@ def test_bmm_cameras_are_reproducible_to_rounding():
     assert np.abs(R1 @ (U @ Vt) - R0).max() < 1e-6
 
 
+def test_bmm_warm_from_its_own_solution_keeps_it_and_its_reflection():
+    """``bmm_warm`` (the perspective step's re-solve of corrected tracks) started from bmm's own
+    result on the same tracks gives that solution back: the same fit and shapes as accurate;
+    started from the depth-reflected result it returns that reflection; a start of other
+    tracks is refused naming it."""
+    from nrsfm_ros.core.nrsfm.bmm import bmm, bmm_warm
+    from nrsfm_ros.core.nrsfm.perspective import _flipped
+    W, S, _ = low_rank_sequence(K=3, F=40, P=250, seed=2)
+    W = W + 0.02 * np.random.default_rng(2).normal(size=W.shape)   # full rank: gauge path
+    V = np.ones((40, 250))
+    V[5:15, :40] = 0.0                                     # and hidden entries
+    cold = bmm(W, V, iterations=40)
+    warm = bmm_warm(W, V, cold, iterations=40)
+    e_cold = e3d_frobenius(cold.S, S, 'frame', scale=True)
+    e_warm = e3d_frobenius(warm.S, S, 'frame', scale=True)
+    assert warm.residual_px <= 1.1 * cold.residual_px
+    assert e_warm <= 1.1 * e_cold
+    z = cold.S[:, :, 2]
+    assert (warm.S[:, :, 2] * z).sum() > 0
+    flipped = bmm_warm(W, V, _flipped(cold), iterations=40)
+    assert (flipped.S[:, :, 2] * z).sum() < 0
+    assert e3d_frobenius(flipped.S * [1, 1, -1], S, 'frame', scale=True) <= 1.1 * e_cold
+    with pytest.raises(ValueError, match='start'):
+        bmm_warm(W[:, :100], V[:, :100], cold)
+
+
 def test_bmm_admm_kernels_equal_the_numpy_expressions():
     """The fused numba kernels of bmm_shapes (core/nrsfm/_admm.py) compute exactly the ADMM's
     S-step, T = S + U / rho and dual update written as NumPy expressions."""
@@ -587,29 +613,38 @@ def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
 
 def test_auto_decides_bmm_against_rigid_on_a_spread_subset(monkeypatch):
     """Over DECISION_TRACKS tracks the bmm / rigid decision runs on a spread subset and the full
-    bmm solve only where bmm is taken: the same choices as on every track, and the bmm result
-    covers every track."""
+    bmm solve only where bmm is taken, started from the subset's solution (``bmm_warm``): the
+    same choices as on every track, and the bmm result covers every track as accurately."""
     import importlib
     bmm_mod = importlib.import_module('nrsfm_ros.core.nrsfm.bmm')
     stream = importlib.import_module('nrsfm_ros.core.nrsfm.stream')
     monkeypatch.setattr(stream, 'DECISION_TRACKS', 100)
-    sizes = []
-    real = bmm_mod.bmm
+    sizes, warm = [], []
+    real, real_warm = bmm_mod.bmm, bmm_mod.bmm_warm
 
     def counted(W, V=None, **kw):
         sizes.append(W.shape[1])
         return real(W, V, **kw)
+
+    def counted_warm(W, V, start, **kw):
+        warm.append(W.shape[1])
+        return real_warm(W, V, start, **kw)
     monkeypatch.setattr(bmm_mod, 'bmm', counted)
+    monkeypatch.setattr(bmm_mod, 'bmm_warm', counted_warm)
     W, S = _rigid_body_small_rotation()
     F, P = S.shape[:2]
     res = stream.auto_solve(W, np.ones((F, P)))
     assert res.method == 'rigid' and res.S.shape == (F, P, 3)
-    assert sizes == [100]                       # the full bmm solve was never paid
+    assert sizes == [100] and warm == []        # the full bmm solve was never paid
     sizes.clear()
-    W2, _, _ = low_rank_sequence(K=3, F=60, P=300)
+    W2, S2, _ = low_rank_sequence(K=3, F=60, P=300)
+    W2 = W2 + 0.01 * np.random.default_rng(0).normal(size=W2.shape)
     res2 = stream.auto_solve(W2, np.ones((60, 300)))
     assert res2.method == 'bmm' and res2.S.shape == (60, 300, 3)
-    assert sizes == [100, 300]
+    assert sizes == [100] and warm == [300]
+    cold = real(W2, np.ones((60, 300)), iterations=stream.BMM_ITERATIONS)
+    assert e3d_frobenius(res2.S, S2, 'frame', scale=True) <= \
+        1.1 * e3d_frobenius(cold.S, S2, 'frame', scale=True)
 
 
 def test_stream_bmm_solves_run_fewer_iterations_with_the_same_shapes(monkeypatch):

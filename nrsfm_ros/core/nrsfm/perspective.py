@@ -79,11 +79,15 @@ def check_intrinsics(focal: float, principal: np.ndarray) -> tuple[float, np.nda
 
 def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W: np.ndarray,
                       V: np.ndarray, focal: float, principal: np.ndarray,
-                      iterations: int = 1, weak: NRSfMResult | None = None) -> NRSfMResult:
+                      iterations: int = 1, weak: NRSfMResult | None = None,
+                      warm: Callable[[np.ndarray, np.ndarray, NRSfMResult], NRSfMResult]
+                      | None = None) -> NRSfMResult:
     """``solve(W, V)`` (any weak-perspective NRSfM) refined for a perspective camera; see the
     module docstring.  ``iterations`` corrections after the reflection is chosen (>= 1, each one
-    solve; the choice costs two); ``weak``: ``solve(W, V)`` if already computed.  Returns
-    ``weak`` itself when the perspective model does not explain the tracks better."""
+    solve; the choice costs two); ``weak``: ``solve(W, V)`` if already computed; ``warm(W, V,
+    start)``: the same solver started from ``start`` (the iterate being corrected, in its
+    reflection), used for the corrected solves instead of ``solve``.  Returns ``weak`` itself
+    when the perspective model does not explain the tracks better."""
     focal, principal = check_intrinsics(focal, principal)
     if iterations < 1:
         raise ValueError(f'iterations: expected >= 1, got {iterations}')
@@ -102,7 +106,8 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
     def step(prev: NRSfMResult) -> tuple[float, NRSfMResult]:
         ratio = depth_ratio(prev, focal)
         corrected = ((Wf - c) * ratio[:, None, :] + c).reshape(2 * F, P)
-        res = _aligned(solve(corrected, V), depths(prev))
+        res = warm(corrected, V, prev) if warm is not None else solve(corrected, V)
+        res = _aligned(res, depths(prev))
         return perspective_error(res, W, V, focal, principal, ratio), res
 
     # one corrected solve from each reflection, then only the better one goes on; where the
