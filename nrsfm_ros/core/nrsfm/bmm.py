@@ -566,7 +566,7 @@ def bmm_warm(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult, lam: float
     R = np.array(start.R, dtype=np.float64)
     R[np.linalg.det(R) < 0, :, 2] *= -1.0
     R2 = np.ascontiguousarray(R[:, :2])
-    S = np.einsum('fji,fpj->fip', R, start.S)                # (F, 3, P) object frame
+    S = (start.S @ R).transpose(0, 2, 1)                     # (F, 3, P) object frame
     basis = None
     Vs = V
     if bool((V >= 0.5).all()) and P > 2 * F:

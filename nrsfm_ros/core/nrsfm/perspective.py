@@ -48,13 +48,13 @@ def perspective_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: flo
     divides its weak-perspective projection by the depth ratio ``ratio`` (F, P) about the
     principal point: the pixel error of a solve of measurements corrected by ``ratio`` (1: the
     weak-perspective camera)."""
-    F, P = V.shape
-    c = np.asarray(principal, dtype=np.float64)[None, :, None]
-    weak = (res.scale[:, None, None] * res.S[:, :, :2].transpose(0, 2, 1)
-            + res.t[:, :, None])                                   # (F, 2, P)
-    u = c + (weak - c) / (ratio[:, None, :] if np.ndim(ratio) else ratio)
-    d = np.linalg.norm(u - W.reshape(F, 2, P), axis=1)
-    return float((d * V).sum() / max(V.sum(), 1e-12))
+    c = np.asarray(principal, dtype=np.float64)
+    d2 = np.zeros(V.shape)
+    for k in (0, 1):        # per image axis, (F, P) each: no (F, 2, P) temporaries
+        weak = res.scale[:, None] * res.S[:, :, k] + res.t[:, k, None]
+        e = c[k] + (weak - c[k]) / ratio - W[k::2]
+        d2 += e * e
+    return float((np.sqrt(d2) * V).sum() / max(V.sum(), 1e-12))
 
 
 def _flipped(res: NRSfMResult) -> NRSfMResult:
