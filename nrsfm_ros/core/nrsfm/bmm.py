@@ -481,30 +481,45 @@ def row_space(Wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return Wc @ B.T, B
 
 
+WARM_FRACTION = 0.4   # bmm_warm: this x the iterations for the shapes from the start
+
+
 def _motion_and_shapes(Wc: np.ndarray, X: np.ndarray, V: np.ndarray, rank: int, lam: float,
                        iterations: int, trace_weight: float, gauge_rounds: int,
-                       camera: tuple[str, float | None, float] = ('free', None, 0.0)
+                       camera: tuple[str, float | None, float] = ('free', None, 0.0),
+                       start: tuple[np.ndarray, np.ndarray] | None = None
                        ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
     """Cameras R2 and object-frame shapes S (F, 3, P) for centred tracks Wc (2F, P) with
     visibility V; X is Wc with the hidden entries imputed (the shapes' starting point);
-    ``camera`` = (camera_model, smooth, orbit_tolerance) of ``_choose_cameras``."""
+    ``camera`` = (camera_model, smooth, orbit_tolerance) of ``_choose_cameras``; ``start`` =
+    (R2, S): cameras and object-frame shapes to start from instead of the metric projection
+    and X (``bmm_warm``): the first shapes then take ``WARM_FRACTION`` x ``iterations`` from a
+    10x larger first penalty."""
     F, P = V.shape
     full = bool((V >= 0.5).all())
     basis = None
     if full and P > 2 * F:
         Wc, basis = row_space(Wc)
         X, V = Wc, np.ones((F, Wc.shape[1]))
-    R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
-        averaged_rotations(Wc, V, trace_weight=trace_weight)
-    init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, -1)     # hidden tracks start imputed
     lam_abs = lam * max(noise_level(X), 1e-4)
-    S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, iterations, init=init)
+    if start is None:
+        R2 = dai_rotations(Wc, V, rank, trace_weight) if rank else \
+            averaged_rotations(Wc, V, trace_weight=trace_weight)
+        init = R2.transpose(0, 2, 1) @ X.reshape(F, 2, -1)     # hidden tracks start imputed
+        S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, iterations, init=init)
+    else:
+        R2, init = start
+        S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, max(1, int(WARM_FRACTION * iterations)),
+                                 rho=1e-2, init=init if basis is None else init @ basis.T)
     r = exact_rank(X) if full else min(X.shape)   # (imputation lowers the rank)
     used = 'free'
     if r <= 3 * max(AUTO_RANKS) and r < min(2 * F, P - 1):
         # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
         S = depth_em(X, R2, S, max(1, -(-r // 3)))
     else:
+        # (a warm start keeps the gauge round's cold penalty: warm-started too, 16
+        # iterations, the face at 60 deg amplitude 2 on ground-truth tracks went 0.048 ->
+        # 0.059, above static 0.054)
         R2, S, used = _gauge_rounds(Wc, V, R2, S, lam_abs, iterations, gauge_rounds, basis,
                                     camera)
     return R2, (S if basis is None else S @ basis), it, conv, used
@@ -540,9 +555,6 @@ def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 
     return _finish(Wc, V, R2, S, t, 'bmm', rank, it, conv, t0, used)
 
 
-WARM_FRACTION = 0.4   # bmm_warm: this x the iterations for the shapes from the start
-
-
 def bmm_warm(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult, lam: float = 4.0,
              iterations: int = 100, gauge_rounds: int = 1, camera_model: str = 'auto',
              smooth: float | None = None, orbit_tolerance: float = 0.1) -> NRSfMResult:
@@ -565,24 +577,11 @@ def bmm_warm(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult, lam: float
     # cameras is R diag(1, 1, -1) and object shapes R^T S
     R = np.array(start.R, dtype=np.float64)
     R[np.linalg.det(R) < 0, :, 2] *= -1.0
-    R2 = np.ascontiguousarray(R[:, :2])
-    S = (start.S @ R).transpose(0, 2, 1)                     # (F, 3, P) object frame
-    basis = None
-    Vs = V
-    if bool((V >= 0.5).all()) and P > 2 * F:
-        Wc_s, basis = row_space(Wc)
-        S, Vs = S @ basis.T, np.ones((F, Wc_s.shape[1]))
-    else:
-        Wc_s = Wc
-    lam_abs = lam * max(noise_level(X), 1e-4)
-    S, it, conv = bmm_shapes(Wc_s, Vs, R2, lam_abs, max(1, int(WARM_FRACTION * iterations)),
-                             rho=1e-2, init=S)
-    # the gauge round from its usual cold penalty: warm-started too (16 iterations), the
-    # face at 60 deg amplitude 2 on ground-truth tracks went 0.048 -> 0.059 (static 0.054)
-    R2, S, used = _gauge_rounds(Wc_s, Vs, R2, S, lam_abs, iterations, gauge_rounds, basis,
-                                (camera_model, smooth, orbit_tolerance))
-    return _finish(Wc, V, R2, S if basis is None else S @ basis, t, 'bmm', 0, it, conv, t0,
-                   used)
+    R2, S = np.ascontiguousarray(R[:, :2]), (start.S @ R).transpose(0, 2, 1)   # (F, 3, P)
+    R2, S, it, conv, used = _motion_and_shapes(Wc, X, V, 0, lam, iterations, 0.0, gauge_rounds,
+                                               (camera_model, smooth, orbit_tolerance),
+                                               start=(R2, S))
+    return _finish(Wc, V, R2, S, t, 'bmm', 0, it, conv, t0, used)
 
 
 def dct_smooth(Wc: np.ndarray, d: int) -> np.ndarray:
