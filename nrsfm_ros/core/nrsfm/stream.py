@@ -114,13 +114,11 @@ def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
     corrected measurements), started from it (``bmm.bmm_warm``), on the same spread subset as
     ``_solve_default``."""
     from .bmm import bmm_warm
-    from .extend import extend, spread_subset
-    idx = spread_subset(V.shape[1], BATCH_MAX_TRACKS)
-    if idx.size == V.shape[1]:
-        return bmm_warm(W, V, start, iterations=BMM_ITERATIONS)
-    sub = bmm_warm(W[:, idx], V[:, idx], replace(start, S=start.S[:, idx]),
-                   iterations=BMM_ITERATIONS)
-    return extend(sub, idx, W, V)
+    from .extend import spread_subset, subset_solve
+    idx = spread_subset(V.shape[1], BATCH_MAX_TRACKS)      # the subset subset_solve takes
+    sub_start = start if idx.size == V.shape[1] else replace(start, S=start.S[:, idx])
+    return subset_solve(lambda W, V: bmm_warm(W, V, sub_start, iterations=BMM_ITERATIONS),
+                        W, V, BATCH_MAX_TRACKS)
 
 
 def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
