@@ -506,6 +506,31 @@ def _knobbed_cylinder(n: int, rng) -> np.ndarray:
     return (X - X.mean(0)) / np.linalg.norm(X.max(0) - X.min(0))
 
 
+def test_symmetry_sweep_takes_its_feature_from_the_source_not_the_cut_target():
+    """The knobbed cylinder with 30% of the target cut away by a plane (the knob kept) and 50%
+    uniform clutter: the target's cut and clutter are off the aligned source at most turns as
+    well, so a feature read from the target mixes them with the knob; read from the source's
+    own asymmetry it is the knob, and the sweep lands within 1.5 degrees on three draws
+    (measured 0.62 / 0.69 / 1.03; with the feature read from the target the first ended
+    171 degrees off, flipped end over end)."""
+    rng = np.random.default_rng(5)
+    knob_dir = np.array([np.cos(1.0), np.sin(1.0), 0.0])
+    errs = []
+    for _ in range(3):
+        src = _knobbed_cylinder(35000, rng) + rng.normal(0, 0.005, (35000, 3))
+        tgt = _knobbed_cylinder(35000, rng) + rng.normal(0, 0.005, (35000, 3))
+        d = rng.normal(size=3)
+        d = d / np.linalg.norm(d) * (1 if d @ knob_dir >= 0 else -1)   # the knob stays
+        tgt = tgt[tgt @ d > np.quantile(tgt @ d, 0.3)]
+        tgt = np.vstack([tgt, rng.uniform(tgt.min(0), tgt.max(0), (len(tgt) // 2, 3))])
+        R = Rotation.random(random_state=rng).as_matrix()
+        res = register(src, tgt @ R.T + 0.1, method='icp-point-to-plane', init='global',
+                       voxel=0.01, trim=0.6)
+        errs.append(rotation_error_deg(res.T_target_source[:3, :3], R))
+        assert not res.converged            # the poses were ambiguous: still reported
+    assert max(errs) < 1.5, errs
+
+
 def test_global_start_turns_a_near_symmetric_shape_onto_its_feature():
     """A cylinder with a knob, turned at random: the search's poses are ambiguous (every turn
     about the axis explains nearly all points), and the symmetry sweep finds the turn that puts

@@ -224,7 +224,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
     if ambiguous:       # a (near) symmetry: a feature that breaks it may still decide
         T, sc = symmetry_sweep(Yf, best_T, tree, levels[1:], trim, diag,
                                lambda T: score_of(T, Yf))
-        if sc > best:
+        if sc > -np.inf:                # a feature was found: the sweep's choice stands
             best_T, best = T, sc
     return GlobalPose(T_target_source=best_T, score=best, candidate_scores=scores,
                       target_inliers=keep_t, ambiguous=bool(ambiguous))
@@ -232,6 +232,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
 
 
 SWEEP_STEP_DEG = 5.0      # symmetry_sweep: turns about the symmetry axis this far apart
+SWEEP_FEATURE_TIE = 0.9   # symmetry_sweep: features this close to the best one's tie
 SWEEP_FEATURE = 0.05      # symmetry_sweep: at most this share of source points (and at
 SWEEP_MIN_FEATURE = 50    #   least these) score the turns: the feature, if it is found
 SWEEP_REFINED = 3         # symmetry_sweep: the best turns refined by ICP and rescored
@@ -249,13 +250,17 @@ def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
     symmetry is one of them) by 45 to 315 degrees; the axis whose turns keep the most points
     explained is the symmetry axis (none where no axis keeps ``SWEEP_KEPT`` of the fit at
     ``T``, e.g. a box's flips: ``T`` is returned with score -inf).  The source points (of
-    ``SWEEP_POINTS``) that stay off the target (3 x the median distance) at most of 12 turns
-    about it (at most ``SWEEP_FEATURE`` of them: the feature; on the corpus' cylinder its
-    knob, ~0.2% of the points) score turns about it every ``SWEEP_STEP_DEG``, each also
-    flipped end over end (180 degrees about another principal axis); the ``SWEEP_REFINED``
-    best are refined on ``levels`` and rescored with ``score``.  Soft counts
-    within 1% of the diagonal against exact nearest target points (``tree``).  Returns (the
-    best refined pose, its score)."""
+    ``SWEEP_POINTS``) that stay off the source's own surface (3 x the median distance) at most
+    of 11 turns about it (at most ``SWEEP_FEATURE`` of them: the feature, where the source is
+    not a surface of revolution; on the corpus' cylinder its knob, ~0.2% of the points; taken
+    from the source, not the target, so that the target's missing part and clutter are not
+    mistaken for it) score turns about it every ``SWEEP_STEP_DEG``, each also flipped end over
+    end (180 degrees about another principal axis); the ``SWEEP_REFINED`` best are refined on
+    ``levels``.  Among ``T`` and them, those scoring at least ``AMBIGUOUS_RATIO`` of the best
+    (``score``) keep the fit alike; of these the feature decides (its soft count on the
+    target), and the total score among features within ``SWEEP_FEATURE_TIE`` of the best one.
+    Soft counts within 1% of the diagonal against exact nearest target points (``tree``).
+    Returns (the chosen pose, its score)."""
     h2 = (0.01 * diag) ** 2
 
     def soft(Q: np.ndarray) -> np.ndarray:     # zero beyond 1% of the diagonal: stop there
@@ -277,30 +282,39 @@ def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
     if kept[k] < SWEEP_KEPT * soft(P[None]).mean():
         return T, -np.inf               # no axis of a continuous symmetry (a box's flips)
     axis, other = axes[k], axes[(k + 1) % 3]
-    # the feature: points off the target (3x the median distance) at most of 12 turns
+    # the feature: points off the source's own surface (3x the median distance) at most of
+    # 11 turns about the axis: where the source itself is not a surface of revolution (not
+    # where the target is cut or cluttered)
+    A_all = A
     A = A[::max(1, len(A) // SWEEP_POINTS)]
-    Q = turned(Rotation.from_rotvec(np.outer(np.radians(np.arange(0.0, 360.0, 30.0)), axis)
+    Q = turned(Rotation.from_rotvec(np.outer(np.radians(np.arange(30.0, 360.0, 30.0)), axis)
                                     ).as_matrix(), A)
-    d = tree.query(Q.reshape(-1, 3), workers=-1)[0].reshape(Q.shape[:-1])
+    d = cKDTree(A_all).query(Q.reshape(-1, 3), workers=-1)[0].reshape(Q.shape[:-1])
     off = (d > 3 * np.median(d)).mean(0)
     pick = np.argsort(-off)[:max(SWEEP_MIN_FEATURE, int(SWEEP_FEATURE * len(A)))]
     pick = pick[off[pick] >= 0.5]
     if pick.size < SWEEP_MIN_FEATURE // 5:
         return T, -np.inf                                # nothing breaks the symmetry
     F = A[pick]
+    F_src = Y[::max(1, len(Y) // SWEEP_POINTS)][pick]          # the feature, source frame
     turns = Rotation.from_rotvec(np.outer(np.radians(np.arange(0.0, 360.0, SWEEP_STEP_DEG)),
                                           axis)).as_matrix()
     flip = Rotation.from_rotvec(np.pi * other).as_matrix()
     H = np.concatenate([turns, turns @ flip])
     order = np.argsort(-soft(turned(H, F)).sum(1))
-    best_T, best = T, -np.inf
+    poses, totals = [T], [score(T)]
     for h in order[:SWEEP_REFINED]:
         Th = np.eye(4)
         Th[:3, :3] = H[h] @ T[:3, :3]
         Th[:3, 3] = H[h] @ (T[:3, 3] - c) + c
         Th = icp_iterate(levels, Th, 'point_to_plane', FINE_ITERATIONS, 1e-6, np.inf, trim,
                          0.02 * diag)[0]
-        sc = score(Th)
-        if sc > best:
-            best_T, best = Th, sc
-    return best_T, best
+        poses.append(Th)
+        totals.append(score(Th))
+    # the turns explain (nearly) all points alike: the feature decides among those that keep
+    # the fit, the total score only where a turn loses it
+    feature = [float(soft((F_src @ P[:3, :3].T + P[:3, 3])[None]).mean()) for P in poses]
+    ok = [i for i, s in enumerate(totals) if s >= AMBIGUOUS_RATIO * max(totals)]
+    top = max(feature[i] for i in ok)
+    i = max((i for i in ok if feature[i] >= SWEEP_FEATURE_TIE * top), key=lambda i: totals[i])
+    return poses[i], totals[i]
