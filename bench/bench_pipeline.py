@@ -31,6 +31,9 @@ and track id); its static/flat baselines are recomputed on exactly those points 
 keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
 ``--set name=value``: reconstructor parameters (YAML values, as on the node) for the pipeline
 rows and ``stream(GT)``, e.g. ``--set projection=weak batch_frames=30``.
+``--modes`` also takes ``dspr-full``: ``dspr`` with its recurrence test off (no frame is served
+from a stored state, every one goes through the per-frame energy): issue 13's "the same mode
+without compression", which the compression table then compares ``dspr`` with.
 """
 from __future__ import annotations
 
@@ -140,6 +143,16 @@ def case_config(surface: str, size: tuple[int, int], frames: int, motion: float,
                        period_frames=periodic)
 
 
+# bench-only modes: (reconstructor mode, parameter overrides)
+VARIANTS = {'dspr-full': ('dspr', {'dspr_recurrence_px': 1e-12})}
+
+
+def mode_params(rec: ReconstructorParams, mode: str) -> ReconstructorParams:
+    """The reconstructor's parameters for one pipeline row (``VARIANTS`` resolved)."""
+    base, over = VARIANTS.get(mode, (mode, {}))
+    return replace(rec, mode=base, **over)
+
+
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
              rec: ReconstructorParams | None = None) -> dict:
@@ -178,7 +191,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     for mode in modes:
         t = time.perf_counter()
         rep = process_bag(case / 'tracks', case / mode, stages=['reconstructor'], progress=False,
-                          params={'reconstructor': replace(rec, mode=mode)})
+                          params={'reconstructor': mode_params(rec, mode)})
         row[f'{mode}_s'] = time.perf_counter() - t
         clouds = read_clouds(case / mode, seq.stamps_ns)
         s = score(clouds, seq).summary()
@@ -276,13 +289,15 @@ def main() -> None:
         print()
         table(['surface', 'cam deg', 'amp', 'mode', 'e3D', 'occluded', 'visible',
                'occluded/visible'], occ_rows)
+    full = 'dspr-full' in modes
     comp = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m,
              f"{r[f'{m}_compression']:.1f}", f4(r[m])]
+            + ([f"{r[m] / r['dspr-full']:.2f}"] if full else [])
             for r in rows for m in modes if f'{m}_compression' in r]
     if comp:
         print()
         table(['surface', 'cam deg', 'amp', 'mode', 'compression (frames / stored states)',
-               'e3D'], comp)
+               'e3D'] + (['/ dspr-full (no compression)'] if full else []), comp)
     ratios = np.array([r['ratio_pipeline'] for r in rows])
     if rows:
         print(f'\npipeline / static: median {np.nanmedian(ratios):.2f}, worst '
