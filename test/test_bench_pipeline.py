@@ -70,3 +70,28 @@ def test_set_overrides_reach_the_stream_and_the_process_rows(bench):
     assert bench.stream_overrides(ReconstructorParams()) == {}
     with pytest.raises(ValueError, match='batch_frames'):
         ReconstructorParams().updated({'batch_frames': 1})
+
+
+def test_dspr_full_is_dspr_without_its_recurrences(bench):
+    """--modes dspr-full: the reconstructor in mode dspr with the recurrence test off, so every
+    frame after the prior batch goes through the per-frame energy; plain dspr serves some of a
+    periodic sequence's frames from its stored states (its compression)."""
+    import numpy as np
+    from nrsfm_ros.params import ReconstructorParams
+    from nrsfm_ros.processing import make_stream
+    rec = ReconstructorParams()
+    full = bench.mode_params(rec, 'dspr-full')
+    assert full.mode == 'dspr' and full.dspr_recurrence_px < 1e-9
+    assert bench.mode_params(rec, 'batch') == ReconstructorParams(mode='batch')
+    seq = generate(bench.case_config('flag', (96, 72), 24, 30.0, 1.0, False, 8))
+    counts = {}
+    for name in ('dspr', 'dspr-full'):
+        p = bench.mode_params(rec, name)
+        stream = make_stream(p, batch_frames=8, projection='weak')
+        out = []
+        for f in range(24):
+            out += stream.push(seq.track_ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
+        out += stream.flush()
+        assert sorted(s.index for s in out) == list(range(24))
+        counts[name] = stream.prior.recurrences
+    assert counts['dspr-full'] == 0 < counts['dspr'], counts
