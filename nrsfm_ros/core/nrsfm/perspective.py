@@ -127,3 +127,60 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
     if err < (1.0 - MIN_GAIN) * weak_err and np.isfinite(res.S).all():
         return replace(res, residual_px=err)
     return weak
+
+
+FRAME_FLIP_SWITCH = 1.0       # frame_reflections: the log-error evidence a run of frames needs
+#   to leave (or re-enter) the batch's depth sign
+
+
+def frame_errors(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
+                 principal: np.ndarray) -> np.ndarray:
+    """(F, 2) per frame: the visibility-weighted mean pixel error of ``res`` imaged by the
+    perspective camera with its own depths and with the frame's depths reflected about its
+    centroid (which the orthographic camera cannot tell apart), each with its best image
+    translation."""
+    focal, principal = check_intrinsics(focal, principal)
+    F, P = V.shape
+    x = res.S[:, :, :2] * res.scale[:, None, None]                 # (F, P, 2) image units
+    z = res.S[:, :, 2] * res.scale[:, None]                        # (F, P)
+    w = W.reshape(F, 2, P).transpose(0, 2, 1)                      # (F, P, 2)
+    c = principal[None, None, :]
+    out = np.empty((F, 2))
+    for k, sign in enumerate((1.0, -1.0)):
+        a = 1.0 / np.clip(1.0 + sign * z / focal, *RATIO_RANGE)    # (F, P)
+        r0 = c + (x + res.t[:, None, :] - c) * a[:, :, None] - w
+        t = -(V[:, :, None] * a[:, :, None] * r0).sum(1) / \
+            np.maximum((V * a * a).sum(1), 1e-12)[:, None]          # (F, 2) best shift
+        e = np.linalg.norm(r0 + t[:, None, :] * a[:, :, None], axis=2)
+        out[:, k] = (e * V).sum(1) / np.maximum(V.sum(1), 1e-12)
+    return out
+
+
+def frame_reflections(errors: np.ndarray, per_frame: bool = False,
+                      switch: float = FRAME_FLIP_SWITCH) -> np.ndarray:
+    """(F,) +1 (keep) or -1 (reflect the frame's depths) from ``frame_errors``.  The batch's
+    sign: the one with the lower total log error over its frames (an orthographic solve's depth
+    sign is arbitrary; the perspective image of all frames together decides it).
+    ``per_frame``: then runs of frames may take the other sign, where the sign sequence with the
+    least total log error plus ``switch`` per change of sign says so (entering and leaving a run
+    each cost ``switch``; one reaching the batch's end only its entry) -- for a model whose
+    frames each carry their own reflection (a plane's Necker reversal), not for one shape seen
+    in every frame."""
+    cost = np.log(np.maximum(errors, 1e-12))
+    g = 1 if cost[:, 1].sum() < cost[:, 0].sum() else 0          # the batch's sign
+    cost = cost[:, [g, 1 - g]]
+    F = cost.shape[0]
+    state = np.zeros(F, np.intp)
+    if per_frame:
+        acc = np.array([cost[0, 0], cost[0, 1] + switch])
+        back = np.zeros((F, 2), np.intp)
+        for f in range(1, F):
+            stay, move = acc, acc[::-1] + switch
+            back[f] = np.where(stay <= move, [0, 1], [1, 0])
+            acc = np.minimum(stay, move) + cost[f]
+        s = int(np.argmin(acc))
+        for f in range(F - 1, -1, -1):
+            state[f] = s
+            s = int(back[f, s])
+    flipped = (state == 1) != bool(g)                        # state 1: the other sign than g
+    return np.where(flipped, -1.0, 1.0)

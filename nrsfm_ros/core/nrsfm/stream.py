@@ -49,7 +49,8 @@ import numpy as np
 
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
-from .perspective import RATIO_RANGE, check_intrinsics, perspective_solve
+from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
+                          perspective_solve)
 from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
 
@@ -186,6 +187,7 @@ class StreamNRSfM:
             raise ValueError(f'projection={projection!r}: expected one of {PROJECTIONS}')
         self.projection = projection
         self._intrinsics: tuple[float, np.ndarray] | None = None
+        self.frame_flips = 0        # batch frames reflected by _frame_reflections
         self.perspective_solves = 0      # batch solves where the perspective model won
         self.last_method = ''            # the method of the last batch solve (auto's choice)
         for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
@@ -350,6 +352,7 @@ class StreamNRSfM:
             res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
             res = self._safe(lambda: self._batch_solve(W, V), W, V, frames)
+        res = self._frame_reflections(res, W, V)
         if spva and res.method != 'flat':
             res = self._spva_prior(ids, W, V, res)
         out = self._emit(frames, ids, res, list(self._pending))
@@ -379,6 +382,30 @@ class StreamNRSfM:
             self._batch_perspective = res is not weak
         self.last_method = res.method
         return res
+
+    def _frame_reflections(self, res: NRSfMResult, W: np.ndarray, V: np.ndarray
+                           ) -> NRSfMResult:
+        """With intrinsics (``projection: perspective``): a batch solve in the depth
+        reflection its perspective image agrees with (``perspective.frame_reflections``).  An
+        orthographic solve leaves the sign to chance where the perspective refinement is not
+        kept (a cap solved rigid came out concave in every frame), and the planar model picks
+        each frame's sign from the previous frame's, so a flag turning through the view plane
+        came out with its later frames reflected: for ``planar`` runs of frames may also take
+        the other sign.  ``frame_flips`` counts the frames reflected."""
+        if self.projection != 'perspective' or self._intrinsics is None or \
+                res.method == 'flat' or not np.isfinite(res.S).all():
+            return res
+        signs = frame_reflections(frame_errors(res, W, V, *self._intrinsics),
+                                  per_frame=res.method == 'planar')
+        self.frame_flips += int((signs < 0).sum())
+        if not (signs < 0).any():
+            return res
+        flip = np.where(signs[:, None] < 0, -1.0, 1.0)
+        S = res.S.copy()
+        S[:, :, 2] *= flip
+        R = np.array(res.R, dtype=np.float64)
+        R[:, 2] *= flip                 # FLIP @ R on the reflected frames
+        return replace(res, S=S, R=R)
 
     def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
               frames: list[_Frame]) -> NRSfMResult:
