@@ -16,6 +16,13 @@ through its own and through its flipped depths already differs by ``PROXY_MARGIN
 better reflection is iterated.  When it does not cut the
 weak-perspective solution's own error by ``MIN_GAIN`` (depth relief unobservable, e.g. a far or
 flat scene), the weak-perspective solution is returned unchanged.
+
+Its depth sign is then still the weak solver's coin toss, so the stream also asks every frame
+(``frame_errors``: the result imaged with its own and with its reflected depths) and gives the
+batch the sign with the lower total log error (``frame_reflections``); a model whose frames each
+carry their own reflection (``planar``: a plane's Necker reversal, each frame's sign taken from
+the previous one's) may also have runs of frames reflected, where the evidence over the run
+exceeds ``FRAME_FLIP_SWITCH`` per change of sign.
 """
 from __future__ import annotations
 
