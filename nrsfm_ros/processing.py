@@ -439,11 +439,13 @@ class ReconstructorProcessor(Processor):
             self._reset()
 
     def status(self) -> dict[str, str]:
-        """Batch solves won by the perspective model, the last batch solve's method (what
-        ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
+        """Batch solves won by the perspective model, batch frames published with their
+        depths reflected to agree with the perspective image (``reflected_frames``), the last
+        batch solve's method (what ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
         prior; spva: the frames (of the first batch) its shape prior was built from."""
         s = self.stream
-        out = {'perspective_solves': str(s.perspective_solves)}
+        out = {'perspective_solves': str(s.perspective_solves),
+               'reflected_frames': str(s.frame_flips)}
         if s.last_method:
             out['last_method'] = s.last_method
         if self.params.mode == 'dspr':
