@@ -191,3 +191,13 @@ def frame_reflections(errors: np.ndarray, per_frame: bool = False,
             s = int(back[f, s])
     flipped = (state == 1) != bool(g)                        # state 1: the other sign than g
     return np.where(flipped, -1.0, 1.0)
+
+
+def reflected_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
+                    principal: np.ndarray, per_frame: bool = False) -> float:
+    """Mean over frames of ``frame_errors`` with each frame in the sign ``frame_reflections``
+    gives it: how well a weak-perspective result explains the perspective image, in its best
+    depth reflection(s) -- comparable between models (``stream.auto_solve``)."""
+    e = frame_errors(res, W, V, focal, principal)
+    signs = frame_reflections(e, per_frame=per_frame)
+    return float(np.mean(np.where(signs < 0, e[:, 1], e[:, 0])))

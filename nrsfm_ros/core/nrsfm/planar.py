@@ -62,6 +62,17 @@ PLANAR_RIGID_RATIO = 1.5  # planar's reprojection residual over rigid's above wh
 #   bmm's 0.10).
 
 
+PLANAR_PERSPECTIVE_RATIO = 1.0  # with the camera's intrinsics (stream.auto_solve): planar's
+#   perspective-image error (perspective.reflected_error, each frame in its better reflection)
+#   over the rigid shape's above which the planar model does not hold.  Measured on the
+#   256x192 renders, ground-truth / tracker tracks: flag 0.35-0.97 / 0.55-0.96 at 12 deg (0.95-
+#   0.97 without the occluder), 0.21-0.59 at 30-60 deg; sheet 0.12-0.67 / 0.21-0.77; face at 12
+#   deg 1.05-1.66 / 0.95-1.41 (planar 0.12-0.17 there against rigid's 0.026-0.068: the face's
+#   relief read as per-frame heights through the little camera motion), 1.46-1.83 at 30 deg;
+#   cap 1.18-2.07 / 1.21-1.93.  The weak residual ratio (PLANAR_RIGID_RATIO) cannot separate
+#   these: face at 12 deg 0.98-1.73, sheets 0.88-1.16.
+
+
 def rest_height_ratio(S: np.ndarray) -> float:
     """RMS of the time-mean height (object-frame z) over the RMS in-plane extent, for
     object-frame shapes S (F, 3, P) of the planar model: ~0 for a flat rest shape."""

@@ -50,7 +50,7 @@ import numpy as np
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
-                          perspective_solve)
+                          perspective_solve, reflected_error)
 from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
 
@@ -103,11 +103,14 @@ class _Frame:
     vis: np.ndarray
 
 
-def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
+def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int,
+                   perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
     """A batch solve with ``method``; over ``BATCH_MAX_TRACKS`` tracks on a spread subset,
-    extended to every track (core/nrsfm/extend.py)."""
+    extended to every track (core/nrsfm/extend.py).  ``perspective``: the camera's (focal,
+    principal point), for ``auto``'s planar test."""
     from .extend import subset_solve
-    return subset_solve(lambda W, V: _solve_all(W, V, method, rank), W, V, BATCH_MAX_TRACKS)
+    return subset_solve(lambda W, V: _solve_all(W, V, method, rank, perspective), W, V,
+                        BATCH_MAX_TRACKS)
 
 
 def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
@@ -122,10 +125,11 @@ def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
                         W, V, BATCH_MAX_TRACKS)
 
 
-def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMResult:
+def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
+               perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
-        return auto_solve(W, V)
+        return auto_solve(W, V, perspective)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'bmm':
         kw = {'iterations': BMM_ITERATIONS}
@@ -134,18 +138,26 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int) -> NRSfMRes
     return reconstruct(W, V, method=method, **kw)
 
 
-def auto_solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+def auto_solve(W: np.ndarray, V: np.ndarray,
+               perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
     """``method: auto``: the deformation model chosen from the tracks, among three nested in
     freedom: ``planar`` where its tests pass (a flat rest shape whose reprojection residual is
-    at most ``PLANAR_RIGID_RATIO`` x one rigid shape's), else ``bmm``, unless ``bmm`` explains
-    less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the rigid factorisation
-    leaves: its per-frame shapes then fit what the rigid shape cannot by depths the camera
-    motion does not observe (or its fill of hidden tracks failed), and rigid is taken."""
+    at most ``PLANAR_RIGID_RATIO`` x one rigid shape's; with the camera's ``perspective``
+    (focal, principal point) also a perspective image explained at most
+    ``PLANAR_PERSPECTIVE_RATIO`` x as badly as by the rigid shape), else ``bmm``, unless
+    ``bmm`` explains less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the
+    rigid factorisation leaves: its per-frame shapes then fit what the rigid shape cannot by
+    depths the camera motion does not observe (or its fill of hidden tracks failed), and rigid
+    is taken."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
-    from .planar import planar, rigid_residual, safe_rigid
+    from .planar import PLANAR_PERSPECTIVE_RATIO, planar, rigid_residual, safe_rigid
     rig = safe_rigid(W, V)
     res = planar(W, V, rigid_check=rig)
+    if res.converged and perspective is not None and rig is not None and \
+            reflected_error(res, W, V, *perspective, per_frame=True) > \
+            PLANAR_PERSPECTIVE_RATIO * reflected_error(rig, W, V, *perspective):
+        res = replace(res, converged=False)
     if res.converged:
         return res
     if rig is None:
@@ -361,6 +373,8 @@ class StreamNRSfM:
 
     def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
         def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+            if self._solver is _solve_default and self.projection == 'perspective':
+                return _solve_default(W, V, self.method, self.rank, self._intrinsics)
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
         if self.projection != 'perspective' or self._intrinsics is None:
