@@ -445,7 +445,7 @@ class ReconstructorProcessor(Processor):
         prior; spva: the frames (of the first batch) its shape prior was built from."""
         s = self.stream
         out = {'perspective_solves': str(s.perspective_solves),
-               'reflected_frames': str(s.frame_flips)}
+               'reflected_frames': str(s.reflected_frames)}
         if s.last_method:
             out['last_method'] = s.last_method
         if self.params.mode == 'dspr':

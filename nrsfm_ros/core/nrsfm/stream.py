@@ -199,7 +199,7 @@ class StreamNRSfM:
             raise ValueError(f'projection={projection!r}: expected one of {PROJECTIONS}')
         self.projection = projection
         self._intrinsics: tuple[float, np.ndarray] | None = None
-        self.frame_flips = 0        # batch frames reflected by _frame_reflections
+        self.reflected_frames = 0        # batch frames reflected by _frame_reflections
         self.perspective_solves = 0      # batch solves where the perspective model won
         self.last_method = ''            # the method of the last batch solve (auto's choice)
         for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
@@ -405,13 +405,13 @@ class StreamNRSfM:
         kept (a cap solved rigid came out concave in every frame), and the planar model picks
         each frame's sign from the previous frame's, so a flag turning through the view plane
         came out with its later frames reflected: for ``planar`` runs of frames may also take
-        the other sign.  ``frame_flips`` counts the frames reflected."""
+        the other sign.  ``reflected_frames`` counts the frames reflected."""
         if self.projection != 'perspective' or self._intrinsics is None or \
                 res.method == 'flat' or not np.isfinite(res.S).all():
             return res
         signs = frame_reflections(frame_errors(res, W, V, *self._intrinsics),
                                   per_frame=res.method == 'planar')
-        self.frame_flips += int((signs < 0).sum())
+        self.reflected_frames += int((signs < 0).sum())
         if not (signs < 0).any():
             return res
         flip = np.where(signs[:, None] < 0, -1.0, 1.0)
