@@ -17,8 +17,9 @@ frames) of
   ``--live`` the live node graph over DDS;
 - frames in / out (the fewest clouds of any pipeline row) and the ratio of the best pipeline row
   and of ``stream(GT)`` to the static oracle;
-- the frames whose published depths are reflected against the truth's (``inverted_frames``:
-  metric B forgives a reflection, a subscriber does not), for ``stream(GT)`` and each mode;
+- the frames whose published depths are reflected against the truth's
+  (``evaluation.depth_reflected_frames``: metric B forgives a reflection, a subscriber does
+  not), for ``stream(GT)`` and each mode;
 - why a case may be hard: the camera's rotation range (deg) over the sequence, which is what
   makes depth observable to an orthographic factorisation; with ``--true-cameras``, the
   observability bound: the ground-truth tracks reconstructed with the TRUE camera rotations and
@@ -56,8 +57,8 @@ sys.path.insert(0, str(ROOT))
 from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import rotation_angle_deg  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
-from nrsfm_ros.evaluation import (read_clouds, score, shapes_as_clouds,  # noqa: E402
-                                  stream_on_tracks)
+from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds, score,  # noqa: E402
+                                  shapes_as_clouds, stream_on_tracks)
 from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM  # noqa: E402
@@ -81,23 +82,6 @@ def camera_range_deg(T: np.ndarray) -> float:
     """Largest rotation between any frame's camera and frame 0's (deg)."""
     R0 = T[0, :3, :3]
     return max(rotation_angle_deg(R0 @ T[f, :3, :3].T) for f in range(T.shape[0]))
-
-
-def inverted_frames(clouds: dict, seq) -> int:
-    """Frames whose published depths run against the truth's (negative correlation of the
-    centred depths on the matched points): a depth reflection, which metric B (Procrustes with
-    reflections, the NRSfM convention) does not see but a subscriber of the cloud or of
-    ``nrsfm/depth`` does -- a concave cap for a convex one, a flag turned the other way."""
-    col = {int(i): k for k, i in enumerate(seq.track_ids)}
-    bad = 0
-    for f, (X, ids) in clouds.items():
-        keep = [k for k, i in enumerate(ids) if int(i) in col] if f < seq.S.shape[0] else []
-        if len(keep) < 10:
-            continue
-        z = X[keep, 2] - X[keep, 2].mean()
-        g = seq.S[f][[col[int(ids[k])] for k in keep], 2]
-        bad += float(z @ (g - g.mean())) < 0
-    return bad
 
 
 def occluded_split(clouds: dict, seq) -> tuple[float, float]:
@@ -197,7 +181,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     gt_clouds = stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K, **stream_overrides(rec))
     st = score(gt_clouds, seq).summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
-    row['stream_gt_inverted'] = inverted_frames(gt_clouds, seq)
+    row['stream_gt_inverted'] = depth_reflected_frames(gt_clouds, seq)
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
     if case.exists():
         shutil.rmtree(case)
@@ -216,7 +200,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         clouds = read_clouds(case / mode, seq.stamps_ns)
         s = score(clouds, seq).summary()
         row[mode], row[f'{mode}_static'] = s['e3d'], s['static']
-        row[f'{mode}_inverted'] = inverted_frames(clouds, seq)
+        row[f'{mode}_inverted'] = depth_reflected_frames(clouds, seq)
         if row['occluder']:
             row[f'{mode}_occluded'], row[f'{mode}_visible'] = occluded_split(clouds, seq)
         row[f'{mode}_frames'] = rep.outputs.get('nrsfm/points', 0)

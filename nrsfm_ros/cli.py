@@ -771,7 +771,9 @@ def format_evaluation(r: dict[str, Any], seq: Any, bag: Path, gt: Path) -> list[
              f"  static oracle (frame 0 repeated), same frames and points      "
              f"{r['e3d_static_oracle']:.4f}   e3D/static {r['ratio_static']:.2f}x",
              f"  flat plane (frame 0 flattened), same frames and points        "
-             f"{r['e3d_flat_plane']:.4f}   e3D/flat   {r['ratio_flat']:.2f}x"]
+             f"{r['e3d_flat_plane']:.4f}   e3D/flat   {r['ratio_flat']:.2f}x",
+             f"  frames with depths reflected against the truth (metric B forgives them) "
+             f"{r['frames_depth_reflected']}"]
     per = r.get('per_frame_e3d', {})
     if per:
         e = {f: v[0] for f, v in per.items()}

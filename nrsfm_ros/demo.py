@@ -154,6 +154,8 @@ def format_summary(s: dict[str, Any], live: dict[str, Any] | None = None) -> str
         rows.append(('  static oracle (frame 0 repeated), same frames',
                      f"{s['e3d_static_oracle']:.4f}"))
         rows.append(('  flat plane, same frames', f"{s['e3d_flat_plane']:.4f}"))
+        rows.append(('frames with depths reflected against the truth',
+                     f"{s['frames_depth_reflected']} of {s['frames_scored']}"))
     if 'registration_rmse_m' in s:
         rows.append(('registration RMSE to reference (m)', f"{s['registration_rmse_m']:.4f}"))
     if 'registration_rotation_error_deg_median' in s:

@@ -76,6 +76,26 @@ def score(clouds: dict[int, tuple[np.ndarray, np.ndarray]], seq: SynthSequence) 
     return score_stream(clouds, seq.track_ids, seq.S, min_points=MIN_POINTS)
 
 
+def depth_reflected_frames(clouds: dict[int, tuple[np.ndarray, np.ndarray]],
+                           seq: SynthSequence) -> int:
+    """Frames whose published depths run against the truth's (negative correlation of the
+    centred depths on the points matched by ``track_id``, at least ``MIN_POINTS``): a depth
+    reflection, which metric B (Procrustes with reflections, the NRSfM convention) forgives but
+    a subscriber of the cloud or of ``nrsfm/depth`` does not -- a concave cap for a convex one,
+    a flag turned away from the camera instead of towards it."""
+    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    bad = 0
+    for f, (X, ids) in clouds.items():
+        keep = [k for k, i in enumerate(ids) if int(i) in col] if 0 <= f < seq.S.shape[0] \
+            else []
+        if len(keep) < MIN_POINTS:
+            continue
+        z = X[keep, 2] - X[keep, 2].mean()
+        g = seq.S[f][[col[int(ids[k])] for k in keep], 2]
+        bad += float(z @ (g - g.mean())) < 0
+    return bad
+
+
 def rigid_on_ground_truth(seq: SynthSequence) -> float:
     """e3D of the rigid factorisation of the ground-truth tracks (a baseline)."""
     res = reconstruct(seq.W, np.maximum(seq.V, 1e-3), method='rigid')
@@ -255,7 +275,8 @@ def scene_flow_errors(out: BagOutputs, seq: SynthSequence, min_points: int = MIN
 def evaluate_outputs(out: BagOutputs, seq: SynthSequence) -> dict[str, Any]:
     """The numbers of an output bag against ground truth (what ``nrsfm-ros evaluate`` prints
     and the demo summary holds): e3D of nrsfm/points (``score``, metric B) with its static and
-    flat baselines on the same frames and points, ``registration_errors`` and
+    flat baselines on the same frames and points, the frames published depth-reflected
+    (``depth_reflected_frames``), ``registration_errors`` and
     ``scene_flow_errors``.  Keys starting with ``per_frame`` hold per-frame values."""
     F = int(seq.S.shape[0])
     r: dict[str, Any] = {'frames_in': F, 'outputs': dict(out.counts)}
@@ -273,6 +294,7 @@ def evaluate_outputs(out: BagOutputs, seq: SynthSequence) -> dict[str, Any]:
             f: ('no cloud' if f not in out.clouds else
                 f'{int(sc.matched[f])} point(s) matched to ground truth (< {MIN_POINTS})')
             for f in sm['unscored']}
+        r['frames_depth_reflected'] = depth_reflected_frames(out.clouds, seq)
         r['points_per_frame'] = int(round(np.mean([c[1].size for c in out.clouds.values()])))
         r['points_matched_per_frame'] = sm['points_matched_mean']
         r['per_frame_e3d'] = {f: (float(sc.e3d[f]), float(sc.static[f]), float(sc.flat[f]),

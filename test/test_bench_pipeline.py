@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from nrsfm_ros.evaluation import score, shapes_as_clouds
+from nrsfm_ros.evaluation import depth_reflected_frames, score, shapes_as_clouds
 from nrsfm_ros.io.synth import SynthConfig, generate
 
 BENCH = Path(__file__).resolve().parent.parent / 'bench'
@@ -97,12 +97,12 @@ def test_dspr_full_is_dspr_without_its_recurrences(bench):
     assert counts['dspr-full'] == 0 < counts['dspr'], counts
 
 
-def test_inverted_frames_counts_the_depth_reflections_metric_b_forgives(bench):
+def test_depth_reflected_frames_counts_the_reflections_metric_b_forgives(bench):
     """The ground-truth shapes: no frame reflected; the same with the depths of 5 frames
     reflected: those 5, while metric B (Procrustes with reflections) scores both alike."""
     seq = generate(bench.case_config('sphere', (96, 72), 12, 30.0, 1.0, False))
     clouds = shapes_as_clouds(seq.S, seq.track_ids)
-    assert bench.inverted_frames(clouds, seq) == 0
+    assert depth_reflected_frames(clouds, seq) == 0
     flipped = {f: (X * [1.0, 1.0, -1.0] if f < 5 else X, ids) for f, (X, ids) in clouds.items()}
-    assert bench.inverted_frames(flipped, seq) == 5
+    assert depth_reflected_frames(flipped, seq) == 5
     assert abs(score(flipped, seq).summary()['e3d'] - score(clouds, seq).summary()['e3d']) < 1e-9

@@ -67,6 +67,9 @@ def test_prints_the_benchmark_numbers(run, capsys):
     for line in (f"{bench['e3d']:.4f}", f"{bench['static']:.4f}", f"{bench['flat']:.4f}"):
         assert line in out
     assert 'static oracle' in out and 'flat plane' in out
+    assert 0 <= d['frames_depth_reflected'] <= FRAMES
+    assert f"reflected against the truth (metric B forgives them) {d['frames_depth_reflected']}" \
+        in out
     assert f'{FRAMES} of {FRAMES} frames scored' in out
     # every output topic of the graph is counted, as in the demo summary
     from nrsfm_ros.demo import OUTPUT_TOPICS
@@ -74,7 +77,7 @@ def test_prints_the_benchmark_numbers(run, capsys):
     assert [c.rsplit(' ', 1)[0] for c in counted.split(', ')] == list(OUTPUT_TOPICS)
     # registration and scene flow: the same numbers as the demo summary of the same bag
     demo = summarise(root / 'out', seq, root / 'render')
-    for key in ('e3d_B_frame_scaled', 'registration_rmse_m',
+    for key in ('e3d_B_frame_scaled', 'frames_depth_reflected', 'registration_rmse_m',
                 'registration_rotation_error_deg_median', 'scene_flow_relative_epe'):
         assert d[key] == demo[key], key
     assert d['scene_flow_frames_scored'] == FRAMES - 1
