@@ -64,8 +64,19 @@ def perspective_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: flo
     return float((np.sqrt(d2) * V).sum() / max(V.sum(), 1e-12))
 
 
+def reflect_frames(res: NRSfMResult, signs: np.ndarray) -> NRSfMResult:
+    """``res`` with the depths of the frames where ``signs`` (F,) is negative reflected about
+    their centroid (S's z and the camera's third row, FLIP @ R); the others unchanged."""
+    flip = np.where(np.asarray(signs)[:, None] < 0, -1.0, 1.0)
+    S = np.array(res.S, dtype=np.float64)
+    S[:, :, 2] *= flip
+    R = np.array(res.R, dtype=np.float64)
+    R[:, 2] *= flip
+    return replace(res, S=S, R=R)
+
+
 def _flipped(res: NRSfMResult) -> NRSfMResult:
-    return replace(res, S=res.S * np.array([1.0, 1.0, -1.0]), R=FLIP @ res.R)
+    return reflect_frames(res, -np.ones(res.S.shape[0]))
 
 
 def _aligned(res: NRSfMResult, z_prev: np.ndarray) -> NRSfMResult:

@@ -50,7 +50,7 @@ import numpy as np
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
-                          perspective_solve, reflected_error)
+                          perspective_solve, reflect_frames, reflected_error)
 from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
 
@@ -412,14 +412,7 @@ class StreamNRSfM:
         signs = frame_reflections(frame_errors(res, W, V, *self._intrinsics),
                                   per_frame=res.method == 'planar')
         self.reflected_frames += int((signs < 0).sum())
-        if not (signs < 0).any():
-            return res
-        flip = np.where(signs[:, None] < 0, -1.0, 1.0)
-        S = res.S.copy()
-        S[:, :, 2] *= flip
-        R = np.array(res.R, dtype=np.float64)
-        R[:, 2] *= flip                 # FLIP @ R on the reflected frames
-        return replace(res, S=S, R=R)
+        return reflect_frames(res, signs) if (signs < 0).any() else res
 
     def _safe(self, solve: Callable[[], NRSfMResult], W: np.ndarray, V: np.ndarray,
               frames: list[_Frame]) -> NRSfMResult:

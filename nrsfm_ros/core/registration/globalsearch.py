@@ -223,7 +223,7 @@ def global_pose(source: np.ndarray, target: np.ndarray, rotations: int = 600,
         rotation_angle_deg(poses[top[1]][:3, :3], best_T[:3, :3]) > AMBIGUOUS_DEG
     if ambiguous:       # a (near) symmetry: a feature that breaks it may still decide
         T, sc = symmetry_sweep(Yf, best_T, tree, levels[1:], trim, diag,
-                               lambda T: score_of(T, Yf))
+                               lambda T: score_of(T, Yf), best)
         if sc > -np.inf:                # a feature was found: the sweep's choice stands
             best_T, best = T, sc
     return GlobalPose(T_target_source=best_T, score=best, candidate_scores=scores,
@@ -241,8 +241,8 @@ SWEEP_POINTS = 8000       # symmetry_sweep: source points searched for the featu
 
 
 def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
-                   trim: float, diag: float, score: Callable[[np.ndarray], float]
-                   ) -> tuple[np.ndarray, float]:
+                   trim: float, diag: float, score: Callable[[np.ndarray], float],
+                   score_T: float | None = None) -> tuple[np.ndarray, float]:
     """Where the best poses are ambiguous, a (near) symmetry of the shape: a feature that
     breaks it (a knob on a cylinder) may still decide, but it is too small a share of the
     points for the search's scores.  The aligned source (``Y`` at pose ``T``, target frame) is
@@ -259,8 +259,9 @@ def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
     ``levels``.  Among ``T`` and them, those scoring at least ``AMBIGUOUS_RATIO`` of the best
     (``score``) keep the fit alike; of these the feature decides (its soft count on the
     target), and the total score among features within ``SWEEP_FEATURE_TIE`` of the best one.
-    Soft counts within 1% of the diagonal against exact nearest target points (``tree``).
-    Returns (the chosen pose, its score)."""
+    Soft counts within 1% of the diagonal against exact nearest target points (``tree``);
+    ``score_T``: ``score(T)`` where the caller has it.  Returns (the chosen pose, its score).
+    """
     h2 = (0.01 * diag) ** 2
 
     def soft(Q: np.ndarray) -> np.ndarray:     # zero beyond 1% of the diagonal: stop there
@@ -302,7 +303,7 @@ def symmetry_sweep(Y: np.ndarray, T: np.ndarray, tree: cKDTree, levels: list,
     flip = Rotation.from_rotvec(np.pi * other).as_matrix()
     H = np.concatenate([turns, turns @ flip])
     order = np.argsort(-soft(turned(H, F)).sum(1))
-    poses, totals = [T], [score(T)]
+    poses, totals = [T], [score(T) if score_T is None else score_T]
     for h in order[:SWEEP_REFINED]:
         Th = np.eye(4)
         Th[:3, :3] = H[h] @ T[:3, :3]
