@@ -138,12 +138,28 @@ def true_camera_bound(seq) -> tuple[float, float]:
 
 
 def case_config(surface: str, size: tuple[int, int], frames: int, motion: float, amp: float,
-                occluder: bool, periodic: int = 0) -> SynthConfig:
+                occluder: bool, periodic: int = 0, distance: float = 4.0) -> SynthConfig:
     """The render of one sweep case (seed 0); ``periodic`` > 0: the deformation's period in
-    frames."""
+    frames; ``distance``: the camera's distance to the surface (m; the focal length follows so
+    that the surface keeps its size in the image: 4 m is a ~19 deg field of view, nearly
+    weak perspective, 1.6 m a ~45 deg one, an ordinary camera's)."""
     return SynthConfig(surface=surface, width=size[0], height=size[1], frames=frames, seed=0,
                        camera_motion_deg=motion, amplitude=amp, occluder=occluder,
-                       period_frames=periodic)
+                       period_frames=periodic, distance=distance)
+
+
+def true_depth_bound(seq) -> float:
+    """e3D of the reconstructor's stream (its defaults, weak perspective) fed the ground-truth
+    tracks corrected by the *true* depth ratios Z / Zbar of every point and frame (the
+    perspective step's correction made exact): what is left is the shape model's, and the gap
+    to ``stream(GT)`` is what the perspective step's estimate of the depths costs."""
+    V = np.maximum(seq.V, 1e-3)
+    F, P = V.shape
+    Z = seq.S[:, :, 2]
+    ratio = Z / ((Z * V).sum(1) / V.sum(1))[:, None]
+    c = seq.K[:2, 2][None, :, None]
+    W = ((seq.W.reshape(F, 2, P) - c) * ratio[:, None, :] + c).reshape(2 * F, P)
+    return score(stream_on_tracks(W, seq.V, seq.track_ids, None), seq).summary()['e3d']
 
 
 # bench-only modes: (reconstructor mode, parameter overrides)
@@ -158,12 +174,13 @@ def mode_params(rec: ReconstructorParams, mode: str) -> ReconstructorParams:
 
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
-             rec: ReconstructorParams | None = None) -> dict:
+             rec: ReconstructorParams | None = None, true_depths: bool = False) -> dict:
     rec = rec or ReconstructorParams()
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
                  'amplitude': cfg.amplitude, 'occluder': bool(getattr(cfg, 'occluder', False)),
-                 'frames_in': cfg.frames, 'camera_range_deg': camera_range_deg(seq.T_camera_world)}
+                 'frames_in': cfg.frames, 'distance_m': cfg.distance,
+                 'camera_range_deg': camera_range_deg(seq.T_camera_world)}
     gt = score(shapes_as_clouds(seq.S, seq.track_ids), seq).summary()
     row['static'], row['flat'] = gt['static'], gt['flat']
     V = np.maximum(seq.V, 1e-3)
@@ -178,6 +195,8 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         row[f'gt_{m}_s'] = time.perf_counter() - t
     if true_cameras:
         row['truecam_rigid'], row['truecam_bmm'] = true_camera_bound(seq)
+    if true_depths:
+        row['truedepth_stream'] = true_depth_bound(seq)
     gt_clouds = stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K, **stream_overrides(rec))
     st = score(gt_clouds, seq).summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
@@ -241,6 +260,12 @@ def main() -> None:
     p.add_argument('--true-cameras', action='store_true',
                    help='also the observability bound: the ground-truth tracks with the true '
                    'cameras given (rigid shape, bmm shapes)')
+    p.add_argument('--true-depths', action='store_true',
+                   help='also the stream on the ground-truth tracks corrected by the true '
+                   'depths (what the perspective step could reach)')
+    p.add_argument('--distance', type=float, default=4.0,
+                   help='camera distance in metres (the focal length keeps the surface\'s '
+                   'image size: 4 = ~19 deg field of view, 1.6 = ~45 deg)')
     p.add_argument('--periodic', type=int, default=0,
                    help='deformation period in frames (0: the usual non-repeating motion)')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
@@ -260,8 +285,9 @@ def main() -> None:
             for amp in (float(v) for v in a.amplitudes.split(',')):
                 for occ in a.occluder.split(','):
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
-                                      a.periodic)
-                    row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec)
+                                      a.periodic, a.distance)
+                    row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec,
+                                   a.true_depths)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)
@@ -272,6 +298,7 @@ def main() -> None:
               + [f'{m}(GT)' for m in gt_methods]
               + (['rigid(true cams)', 'bmm(true cams)'] if a.true_cameras else [])
               + ['stream(GT)']
+              + (['stream(GT, true depths)'] if a.true_depths else [])
               + [f'{m}' for m in pipe_cols]
               + ['frames in/out', 'pipe/static', 'stream(GT)/static'])
 
@@ -283,6 +310,7 @@ def main() -> None:
                    + [f4(r[f'gt_{m}']) for m in gt_methods]
                    + ([f4(r['truecam_rigid']), f4(r['truecam_bmm'])] if a.true_cameras else [])
                    + [f4(r['stream_gt'])]
+                   + ([f4(r['truedepth_stream'])] if a.true_depths else [])
                    + [f4(r[m]) for m in pipe_cols]
                    + [f"{r['frames_in']}/{r['frames_out']}", f"{r['ratio_pipeline']:.2f}",
                       f"{r['ratio_stream_gt']:.2f}"] for r in rows])
