@@ -3,7 +3,7 @@ runs it (``TrackerParams`` defaults -> ``MFOFTracker``), on rendered ``synth`` s
 
     .venv/bin/python bench/bench_tracker_views.py [--surfaces face,sphere,flag]
         [--motions 12,30,60] [--amplitudes 1] [--size 256x192] [--frames 60]
-        [--methods mfof,chain]
+        [--methods mfof,chain] [--distance M]
         [--set recapture_margin=0 ...] [--json out.json]
 
 Per case (seed 0) and method, over the first reference's track ids (= ground-truth ids, y*W+x):
@@ -152,6 +152,9 @@ def main() -> None:
                    help='deformation amplitude multipliers (SynthConfig.amplitude)')
     p.add_argument('--size', default='256x192')
     p.add_argument('--frames', type=int, default=60)
+    p.add_argument('--distance', type=float, default=4.0,
+                   help='camera distance in metres (the focal length keeps the surface\'s '
+                   'image size: 4 = ~19 deg field of view, 1.6 = ~45 deg)')
     p.add_argument('--methods', default='mfof,chain')
     p.add_argument('--set', nargs='*', default=[], metavar='FIELD=VALUE',
                    help='MFOFConfig overrides of the mfof method')
@@ -171,7 +174,7 @@ def main() -> None:
         for motion in (float(v) for v in a.motions.split(',')):
             for amp in (float(v) for v in a.amplitudes.split(',')):
                 cfg = SynthConfig(surface=surface, width=w, height=h, frames=a.frames, seed=0,
-                                  camera_motion_deg=motion, amplitude=amp)
+                                  camera_motion_deg=motion, amplitude=amp, distance=a.distance)
                 rows += run_case(cfg, a.methods.split(','), overrides)
     table(['surface', 'cam deg', 'amp', 'method', 'err mean (px)', 'median', 'p90',
            'bands 1/3, 2/3, 3/3', 'err kept', 'kept', 'rigid/static', 'rigid/static (GT)',

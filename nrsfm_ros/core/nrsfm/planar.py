@@ -51,6 +51,13 @@ PLANAR_REST_RATIO = 0.08  # rest_height_ratio above which the rest shape is not 
 #   0.007-0.060, face 0.135-0.168 / 0.161 at 30-60 deg, sphere cap 0.091-0.206 / 0.121-0.127 at
 #   30-60 deg; at 12 deg the face (0.011-0.021) and the cap (0.046-0.058) look flat: their depth
 #   is barely observable there.  Orthographic dense face: 0.165 over 60 frames.
+PLANAR_REST_RATIO_PERSPECTIVE = 0.16  # the same bound where the camera's intrinsics are known
+#   (stream.auto_solve), which then also applies PLANAR_PERSPECTIVE_RATIO: a weak-perspective
+#   fit reads a close camera's perspective as rest relief (45 deg field of view, 1.6 m in
+#   `synth`, 60 deg of camera motion, the tracker's tracks: sheet 0.082, flag at amplitude 2
+#   0.085, taken rigid / bmm at e3D 0.23-0.32 against planar's 0.05-0.10 on the ground
+#   truth), while the perspective test rejects the face and the cap at every camera motion
+#   (planar over rigid 1.05-2.07 below).
 PLANAR_RIGID_RATIO = 1.5  # planar's reprojection residual over rigid's above which the planar
 #   model does not hold.  Measured on ground-truth tracks of the 256x192 renders (12 / 30 / 60
 #   deg): flag 0.18-0.87, sheet 0.54-1.13 (1.34 on a 128x96, 30-frame render), face 0.98-1.91
@@ -140,12 +147,15 @@ def height_field(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray) -> np.ndarray:
 
 def planar(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: float = 0.01,
            landmarks: int = 300, seed: int = 0,
-           rigid_check: bool | NRSfMResult | None = True) -> NRSfMResult:
+           rigid_check: bool | NRSfMResult | None = True,
+           rest_ratio: float = PLANAR_REST_RATIO) -> NRSfMResult:
     """Planar rest shape + per-frame height field (see the module docstring).  ``beta``,
     ``lam``, ``landmarks``, ``seed``: the coherent fill of hidden tracks (as in ``cdf``).
     ``rigid_check``: compare the residual with the rigid factorisation's for ``converged``
     (True: solve it, ~10x the cost of the planar one; or the rigid result of the same tracks,
-    already solved (None: it failed); False: off, where the model is already chosen)."""
+    already solved (None: it failed); False: off, where the model is already chosen).
+    ``rest_ratio``: the ``rest_height_ratio`` above which the rest shape is not flat
+    (``converged`` False)."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     for name, v in (('beta', beta), ('lam', lam)):
@@ -153,6 +163,8 @@ def planar(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: f
             raise ValueError(f'{name}: expected > 0, got {v}')
     if landmarks < 1:
         raise ValueError(f'landmarks: expected >= 1, got {landmarks}')
+    if not rest_ratio >= 0:
+        raise ValueError(f'rest_ratio: expected >= 0, got {rest_ratio}')
     F, P = V.shape
     if F < 3:
         raise ValueError(f'W: planar needs at least 3 frames, got F={F}')
@@ -160,7 +172,7 @@ def planar(W: np.ndarray, V: np.ndarray | None = None, beta: float = 0.5, lam: f
     Xc, t = _centre(X, np.ones_like(V))
     R2, _ = planar_cameras(Xc)
     S = height_field(Xc, V, R2)
-    flat = rest_height_ratio(S) <= PLANAR_REST_RATIO
+    flat = rest_height_ratio(S) <= rest_ratio
     res = _finish(Xc, V, R2, S, t, 'planar', 0, 1, flat, t0)
     if rigid_check is True and flat:
         rigid_check = safe_rigid(W, V)

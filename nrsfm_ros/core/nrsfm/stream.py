@@ -144,16 +144,22 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     freedom: ``planar`` where its tests pass (a flat rest shape whose reprojection residual is
     at most ``PLANAR_RIGID_RATIO`` x one rigid shape's; with the camera's ``perspective``
     (focal, principal point) also a perspective image explained at most
-    ``PLANAR_PERSPECTIVE_RATIO`` x as badly as by the rigid shape), else ``bmm``, unless
+    ``PLANAR_PERSPECTIVE_RATIO`` x as badly as by the rigid shape, and "flat" then up to
+    ``PLANAR_REST_RATIO_PERSPECTIVE``), else ``bmm``, unless
     ``bmm`` explains less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the
     rigid factorisation leaves: its per-frame shapes then fit what the rigid shape cannot by
     depths the camera motion does not observe (or its fill of hidden tracks failed), and rigid
     is taken."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
-    from .planar import PLANAR_PERSPECTIVE_RATIO, planar, rigid_residual, safe_rigid
+    from .planar import (PLANAR_PERSPECTIVE_RATIO, PLANAR_REST_RATIO,
+                         PLANAR_REST_RATIO_PERSPECTIVE, planar, rigid_residual, safe_rigid)
     rig = safe_rigid(W, V)
-    res = planar(W, V, rigid_check=rig)
+    # with the camera the perspective test below also judges planar: the flatness test may
+    # then allow the relief a weak-perspective fit reads into a close camera's perspective
+    checked = perspective is not None and rig is not None
+    res = planar(W, V, rigid_check=rig,
+                 rest_ratio=PLANAR_REST_RATIO_PERSPECTIVE if checked else PLANAR_REST_RATIO)
     if res.converged and perspective is not None and rig is not None and \
             reflected_error(res, W, V, *perspective, per_frame=True) > \
             PLANAR_PERSPECTIVE_RATIO * reflected_error(rig, W, V, *perspective):
