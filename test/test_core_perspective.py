@@ -127,15 +127,20 @@ def test_batch_stream_uses_perspective_only_with_intrinsics():
 
 def test_batch_bmm_perspective_steps_start_from_the_weak_solution(monkeypatch):
     """With ``bmm`` the batch's perspective re-solves start from the weak solution (its
-    cameras and shapes, ``bmm.bmm_warm``) instead of a fresh metric projection, and the
-    perspective gain is kept."""
+    cameras and shapes, ``bmm.bmm_warm`` or its staged form) instead of a fresh metric
+    projection, and the perspective gain is kept."""
     import nrsfm_ros.core.nrsfm.stream as stream
-    real, starts = stream._warm_bmm, []
+    real, real_staged, starts = stream._warm_bmm, stream._warm_bmm_staged, []
 
     def counted(W, V, start):
         starts.append(start)
         return real(W, V, start)
+
+    def counted_staged(W, V, start):
+        starts.append(start)
+        return real_staged(W, V, start)
     monkeypatch.setattr(stream, '_warm_bmm', counted)
+    monkeypatch.setattr(stream, '_warm_bmm_staged', counted_staged)
     W, V, S = pinhole_scene(distance=2.0, frames=12)
     W = W + 0.05 * np.random.default_rng(1).normal(size=W.shape)
     ids = np.arange(W.shape[1])
@@ -151,6 +156,44 @@ def test_batch_bmm_perspective_steps_start_from_the_weak_solution(monkeypatch):
     assert s.perspective_solves == 1 and 1 <= len(starts) <= 2
     assert all(st.method == 'bmm' for st in starts)
     assert errs['perspective'] < 0.8 * errs['weak']      # 0.113 against 0.148
+
+
+def test_perspective_step_chooses_the_reflection_at_the_early_stage_and_completes_one():
+    """With ``staged`` (``bmm.bmm_warm_staged``), both depth reflections' re-solves are judged
+    at their early stage and only the chosen one is completed: the same result as the two
+    complete re-solves (``warm``) where they choose alike, with one completion instead of
+    two; and ``bmm_warm`` is exactly its staged form completed."""
+    from nrsfm_ros.core.nrsfm import perspective as persp
+    from nrsfm_ros.core.nrsfm.bmm import bmm, bmm_warm, bmm_warm_staged
+    W, V, S = pinhole_scene(distance=2.0, frames=12)
+    W = W + 0.05 * np.random.default_rng(1).normal(size=W.shape)
+    weak = bmm(W, V, iterations=40)
+    early, finish = bmm_warm_staged(W, V, weak, iterations=40)
+    done = finish()
+    assert early.iterations == 0 and np.array_equal(done.S, bmm_warm(W, V, weak, iterations=40).S)
+    assert early.S.shape == done.S.shape and not np.array_equal(early.S, done.S)
+    completions = []
+
+    def staged(W, V, start):
+        early, finish = bmm_warm_staged(W, V, start, iterations=40)
+        return early, lambda: completions.append(1) or finish()
+
+    def warm(W, V, start):
+        return bmm_warm(W, V, start, iterations=40)
+    solve = lambda W, V: bmm(W, V, iterations=40)                       # noqa: E731
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr(persp, 'PROXY_MARGIN', np.inf)          # both reflections re-solved
+    try:
+        both = persp.perspective_solve(solve, W, V, FOCAL, PRINCIPAL, weak=weak, warm=warm)
+        one = persp.perspective_solve(solve, W, V, FOCAL, PRINCIPAL, weak=weak, warm=warm,
+                                      staged=staged)
+    finally:
+        monkey.undo()
+    assert completions == [1] and both is not weak
+    assert np.allclose(one.S, both.S, atol=1e-9 * np.abs(both.S).max())
+    assert one.residual_px == pytest.approx(both.residual_px)
+    assert e3d_frobenius(one.S, S, 'frame', scale=True) < \
+        e3d_frobenius(weak.S, S, 'frame', scale=True)
 
 
 def test_frame_reflections_take_the_batch_sign_and_planar_runs_from_the_perspective_image():

@@ -20,6 +20,7 @@ to the smoothed W.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 from scipy.fft import dct, idct
@@ -495,6 +496,20 @@ def _motion_and_shapes(Wc: np.ndarray, X: np.ndarray, V: np.ndarray, rank: int, 
     (R2, S): cameras and object-frame shapes to start from instead of the metric projection
     and X (``bmm_warm``): the first shapes then take ``WARM_FRACTION`` x ``iterations`` from a
     10x larger first penalty."""
+    return _staged_motion_and_shapes(Wc, X, V, rank, lam, iterations, trace_weight,
+                                     gauge_rounds, camera, start)[1]()
+
+
+def _staged_motion_and_shapes(Wc: np.ndarray, X: np.ndarray, V: np.ndarray, rank: int,
+                              lam: float, iterations: int, trace_weight: float,
+                              gauge_rounds: int, camera: tuple[str, float | None, float],
+                              start: tuple[np.ndarray, np.ndarray] | None
+                              ) -> tuple[tuple[np.ndarray, np.ndarray],
+                                         Callable[[], tuple[np.ndarray, np.ndarray, int, bool,
+                                                           str]]]:
+    """``_motion_and_shapes`` in two stages: ((R2, S) after the first nuclear-norm shapes,
+    before the bias removal or the gauge rounds; a function that completes them into
+    ``_motion_and_shapes``' result)."""
     F, P = V.shape
     full = bool((V >= 0.5).all())
     basis = None
@@ -511,18 +526,22 @@ def _motion_and_shapes(Wc: np.ndarray, X: np.ndarray, V: np.ndarray, rank: int, 
         R2, init = start
         S, it, conv = bmm_shapes(Wc, V, R2, lam_abs, max(1, int(WARM_FRACTION * iterations)),
                                  rho=1e-2, init=init if basis is None else init @ basis.T)
-    r = exact_rank(X) if full else min(X.shape)   # (imputation lowers the rank)
-    used = 'free'
-    if r <= 3 * max(AUTO_RANKS) and r < min(2 * F, P - 1):
-        # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
-        S = depth_em(X, R2, S, max(1, -(-r // 3)))
-    else:
-        # (a warm start keeps the gauge round's cold penalty: warm-started too, 16
-        # iterations, the face at 60 deg amplitude 2 on ground-truth tracks went 0.048 ->
-        # 0.059, above static 0.054)
-        R2, S, used = _gauge_rounds(Wc, V, R2, S, lam_abs, iterations, gauge_rounds, basis,
-                                    camera)
-    return R2, (S if basis is None else S @ basis), it, conv, used
+
+    def rest() -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+        R2_, S_ = R2, S
+        r = exact_rank(X) if full else min(X.shape)   # (imputation lowers the rank)
+        used = 'free'
+        if r <= 3 * max(AUTO_RANKS) and r < min(2 * F, P - 1):
+            # noise-free low-rank data (centring costs one rank): remove the shrinkage bias
+            S_ = depth_em(X, R2_, S_, max(1, -(-r // 3)))
+        else:
+            # (a warm start keeps the gauge round's cold penalty: warm-started too, 16
+            # iterations, the face at 60 deg amplitude 2 on ground-truth tracks went 0.048 ->
+            # 0.059, above static 0.054)
+            R2_, S_, used = _gauge_rounds(Wc, V, R2_, S_, lam_abs, iterations, gauge_rounds,
+                                          basis, camera)
+        return R2_, (S_ if basis is None else S_ @ basis), it, conv, used
+    return (R2, S if basis is None else S @ basis), rest
 
 
 def bmm(W: np.ndarray, V: np.ndarray | None = None, rank: int = 0, lam: float = 4.0,
@@ -564,6 +583,19 @@ def bmm_warm(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult, lam: float
     take ``WARM_FRACTION`` x ``iterations`` from a 10x larger first penalty (the warm start
     of the gauge round), then the same gauge rounds and camera model as ``bmm``.  The metric
     projection (cameras over K = 2..6) is most of ``bmm``'s cost at a few thousand tracks."""
+    return bmm_warm_staged(W, V, start, lam, iterations, gauge_rounds, camera_model, smooth,
+                           orbit_tolerance)[1]()
+
+
+def bmm_warm_staged(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult,
+                    lam: float = 4.0, iterations: int = 100, gauge_rounds: int = 1,
+                    camera_model: str = 'auto', smooth: float | None = None,
+                    orbit_tolerance: float = 0.1
+                    ) -> tuple[NRSfMResult, Callable[[], NRSfMResult]]:
+    """``bmm_warm`` in two stages: (its solution after the warm shapes, before the gauge
+    rounds -- a proxy for choosing between starts, e.g. the perspective step's two depth
+    reflections, at a fraction of the cost; a function that completes it into exactly
+    ``bmm_warm``'s result)."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     F, P = V.shape
@@ -578,10 +610,16 @@ def bmm_warm(W: np.ndarray, V: np.ndarray | None, start: NRSfMResult, lam: float
     R = np.array(start.R, dtype=np.float64)
     R[np.linalg.det(R) < 0, :, 2] *= -1.0
     R2, S = np.ascontiguousarray(R[:, :2]), (start.S @ R).transpose(0, 2, 1)   # (F, 3, P)
-    R2, S, it, conv, used = _motion_and_shapes(Wc, X, V, 0, lam, iterations, 0.0, gauge_rounds,
-                                               (camera_model, smooth, orbit_tolerance),
-                                               start=(R2, S))
-    return _finish(Wc, V, R2, S, t, 'bmm', 0, it, conv, t0, used)
+    (R2e, Se), rest = _staged_motion_and_shapes(Wc, X, V, 0, lam, iterations, 0.0,
+                                                 gauge_rounds,
+                                                 (camera_model, smooth, orbit_tolerance),
+                                                 (R2, S))
+    early = _finish(Wc, V, R2e, Se, t, 'bmm', 0, 0, False, t0)
+
+    def finish() -> NRSfMResult:
+        R2f, Sf, it, conv, used = rest()
+        return _finish(Wc, V, R2f, Sf, t, 'bmm', 0, it, conv, t0, used)
+    return early, finish
 
 
 def dct_smooth(Wc: np.ndarray, d: int) -> np.ndarray:

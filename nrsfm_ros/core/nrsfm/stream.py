@@ -125,6 +125,14 @@ def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
                         W, V, BATCH_MAX_TRACKS)
 
 
+def _warm_bmm_staged(W: np.ndarray, V: np.ndarray, start: NRSfMResult
+                     ) -> tuple[NRSfMResult, Callable[[], NRSfMResult]]:
+    """``_warm_bmm`` in two stages (``bmm.bmm_warm_staged``), for tracks within
+    ``BATCH_MAX_TRACKS`` (no subset)."""
+    from .bmm import bmm_warm_staged
+    return bmm_warm_staged(W, V, start, iterations=BMM_ITERATIONS)
+
+
 def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
                perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
     from . import reconstruct
@@ -397,7 +405,10 @@ class StreamNRSfM:
                 return self._solver(W, V, method, self.rank)
             warm = _warm_bmm if method == 'bmm' and weak.method == 'bmm' and \
                 self._solver is _solve_default else None
-            res = perspective_solve(solve_fixed, W, V, *self._intrinsics, weak=weak, warm=warm)
+            staged = _warm_bmm_staged if warm is not None and \
+                V.shape[1] <= BATCH_MAX_TRACKS else None
+            res = perspective_solve(solve_fixed, W, V, *self._intrinsics, weak=weak, warm=warm,
+                                    staged=staged)
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method
