@@ -62,7 +62,7 @@ from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds, score,  #
 from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM  # noqa: E402
-from nrsfm_ros.params import ReconstructorParams  # noqa: E402
+from nrsfm_ros.params import ReconstructorParams, TrackerParams  # noqa: E402
 from nrsfm_ros.pipeline import process_bag  # noqa: E402
 
 GT_KW = {'lowrank': {'rank': 3}}
@@ -174,7 +174,8 @@ def mode_params(rec: ReconstructorParams, mode: str) -> ReconstructorParams:
 
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
-             rec: ReconstructorParams | None = None, true_depths: bool = False) -> dict:
+             rec: ReconstructorParams | None = None, true_depths: bool = False,
+             trk: TrackerParams | None = None) -> dict:
     rec = rec or ReconstructorParams()
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
@@ -208,7 +209,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     write_sequence_bag(seq, case / 'in')
     t = time.perf_counter()
     rep = process_bag(case / 'in', case / 'tracks', stages=['tracker'], progress=False,
-                      copy_inputs=True)
+                      copy_inputs=True, params={'tracker': trk} if trk is not None else None)
     row['tracker_s'] = time.perf_counter() - t
     outs = []
     for mode in modes:
@@ -271,10 +272,14 @@ def main() -> None:
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
     p.add_argument('--set', nargs='*', default=[], metavar='NAME=VALUE',
                    help='reconstructor parameters (as on the node, YAML values)')
+    p.add_argument('--tracker-set', nargs='*', default=[], metavar='NAME=VALUE',
+                   help='tracker parameters (as on the node, YAML values)')
     a = p.parse_args()
     import yaml
     rec = ReconstructorParams().updated({k: yaml.safe_load(v) for k, v in
                                          (s.split('=', 1) for s in a.set)})
+    trk = TrackerParams().updated({k: yaml.safe_load(v) for k, v in
+                                   (s.split('=', 1) for s in a.tracker_set)})
     w, h = (int(v) for v in a.size.split('x'))
     modes = [m for m in a.modes.split(',') if m]
     gt_methods = [m for m in a.gt_methods.split(',') if m]
@@ -287,7 +292,7 @@ def main() -> None:
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
                                       a.periodic, a.distance)
                     row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec,
-                                   a.true_depths)
+                                   a.true_depths, trk)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)

@@ -168,7 +168,7 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     checked = perspective is not None and rig is not None
     res = planar(W, V, rigid_check=rig,
                  rest_ratio=PLANAR_REST_RATIO_PERSPECTIVE if checked else PLANAR_REST_RATIO)
-    if res.converged and perspective is not None and rig is not None and \
+    if res.converged and checked and \
             reflected_error(res, W, V, *perspective, per_frame=True) > \
             PLANAR_PERSPECTIVE_RATIO * reflected_error(rig, W, V, *perspective):
         res = replace(res, converged=False)
