@@ -57,6 +57,7 @@ sys.path.insert(0, str(ROOT))
 from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import rotation_angle_deg  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
+from nrsfm_ros.core.nrsfm.perspective import corrected_tracks  # noqa: E402
 from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds, score,  # noqa: E402
                                   shapes_as_clouds, stream_on_tracks)
 from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
@@ -154,11 +155,9 @@ def true_depth_bound(seq) -> float:
     perspective step's correction made exact): what is left is the shape model's, and the gap
     to ``stream(GT)`` is what the perspective step's estimate of the depths costs."""
     V = np.maximum(seq.V, 1e-3)
-    F, P = V.shape
     Z = seq.S[:, :, 2]
     ratio = Z / ((Z * V).sum(1) / V.sum(1))[:, None]
-    c = seq.K[:2, 2][None, :, None]
-    W = ((seq.W.reshape(F, 2, P) - c) * ratio[:, None, :] + c).reshape(2 * F, P)
+    W = corrected_tracks(seq.W, ratio, seq.K[:2, 2])
     return score(stream_on_tracks(W, seq.V, seq.track_ids, None), seq).summary()['e3d']
 
 

@@ -49,6 +49,14 @@ def depth_ratio(res: NRSfMResult, focal: float) -> np.ndarray:
     return np.clip(1.0 + z / focal, *RATIO_RANGE)
 
 
+def corrected_tracks(W: np.ndarray, ratio: np.ndarray, principal: np.ndarray) -> np.ndarray:
+    """Tracks W (2F, P) as a weak-perspective camera would have seen them: every point moved
+    about the principal point by its depth ratio ``ratio`` (F, P) = Z / Zbar."""
+    F, P = ratio.shape
+    c = np.asarray(principal, dtype=np.float64)[None, :, None]
+    return ((W.reshape(F, 2, P) - c) * ratio[:, None, :] + c).reshape(2 * F, P)
+
+
 def perspective_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
                       principal: np.ndarray, ratio: np.ndarray | float = 1.0) -> float:
     """Visibility-weighted mean pixel distance between ``W`` and ``res`` imaged by a camera that
@@ -115,9 +123,6 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
     focal, principal = check_intrinsics(focal, principal)
     if iterations < 1:
         raise ValueError(f'iterations: expected >= 1, got {iterations}')
-    F, P = V.shape
-    Wf = W.reshape(F, 2, P)
-    c = principal[None, :, None]
 
     def depths(res: NRSfMResult) -> np.ndarray:
         return res.S[:, :, 2] * res.scale[:, None]
@@ -129,7 +134,7 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
 
     def corrected(prev: NRSfMResult) -> tuple[np.ndarray, np.ndarray]:
         ratio = depth_ratio(prev, focal)
-        return ratio, ((Wf - c) * ratio[:, None, :] + c).reshape(2 * F, P)
+        return ratio, corrected_tracks(W, ratio, principal)
 
     def step(prev: NRSfMResult) -> tuple[float, NRSfMResult]:
         ratio, Wk = corrected(prev)
