@@ -41,17 +41,9 @@ from bench_pipeline import true_depth_bound  # noqa: E402
 from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 from nrsfm_ros.core.nrsfm.perspective import perspective_solve  # noqa: E402
+from nrsfm_ros.core.registration.rays import _rodrigues, _skew  # noqa: E402
 from nrsfm_ros.evaluation import score, shapes_as_clouds  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
-
-
-def _rotation(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = w / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
 
 
 def _pose_step(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np.ndarray,
@@ -67,13 +59,10 @@ def _pose_step(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np
         Jp[:, 0, 0] = Jp[:, 1, 1] = 1 / z
         Jp[:, 0, 2] = -X[:, 0] / z ** 2
         Jp[:, 1, 2] = -X[:, 1] / z ** 2
-        S = np.zeros((z.size, 3, 3))          # d(RO)/d(small rotation) = -[RO]x
-        S[:, 0, 1], S[:, 0, 2] = RO[:, 2], -RO[:, 1]
-        S[:, 1, 0], S[:, 1, 2] = -RO[:, 2], RO[:, 0]
-        S[:, 2, 0], S[:, 2, 1] = RO[:, 1], -RO[:, 0]
+        S = -_skew(RO)                        # d(RO)/d(small rotation)
         J = (np.concatenate([Jp @ S, Jp], 2) * w[:, None, None]).reshape(-1, 6)
         d = np.linalg.solve(J.T @ J + 1e-9 * np.eye(6), -J.T @ r.reshape(-1))
-        R, T = _rotation(d[:3]) @ R, T + d[3:]
+        R, T = _rodrigues(d[:3]) @ R, T + d[3:]
     return R, T
 
 
