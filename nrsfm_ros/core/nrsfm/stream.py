@@ -15,7 +15,8 @@ there.  Modes (the reconstructor's ``mode``):
   orthonormality test says the rest shape is planar, else ``bmm``).  With ``projection``
   ``perspective`` and intrinsics (:meth:`StreamNRSfM.set_intrinsics`) every batch solve is
   refined for a perspective camera (:func:`perspective.perspective_solve`: the shapes are then in
-  weak-perspective-equivalent image coordinates, which back-project exactly).
+  weak-perspective-equivalent image coordinates, which back-project exactly); a ``planar``
+  batch is then fitted to the pinhole image itself (:mod:`.planar_pinhole`).
 * ``dspr``: the first ``batch_frames`` frames solved as ``batch`` (published together), their
   shapes clustered into a dynamic shape prior of distinct states (:mod:`.dspr`), then one shape
   per frame at low latency: every state fitted at once by orthographic Procrustes; a frame whose
@@ -49,6 +50,7 @@ import numpy as np
 
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
+from .planar_pinhole import refine_planar_pinhole
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
 from .result import NRSfMResult
@@ -215,6 +217,7 @@ class StreamNRSfM:
         self._intrinsics: tuple[float, np.ndarray] | None = None
         self.reflected_frames = 0        # batch frames reflected by _frame_reflections
         self.perspective_solves = 0      # batch solves where the perspective model won
+        self.pinhole_refinements = 0     # planar batch solves refined under the pinhole camera
         self.last_method = ''            # the method of the last batch solve (auto's choice)
         for name, v, lo in (('window', window, 3), ('rank', rank, 1), ('iterations', iterations,
                                                                         1),
@@ -409,6 +412,12 @@ class StreamNRSfM:
                 V.shape[1] <= BATCH_MAX_TRACKS else None
             res = perspective_solve(solve_fixed, W, V, *self._intrinsics, weak=weak, warm=warm,
                                     staged=staged)
+            if method == 'planar' and res.method == 'planar':
+                # the planar model fitted to the pinhole image itself: 2-4x lower e3D than the
+                # corrected re-solve alone at a 45 deg field of view (planar_pinhole.py)
+                refined = refine_planar_pinhole(res, W, V, *self._intrinsics)
+                self.pinhole_refinements += refined is not res
+                res = refined
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method

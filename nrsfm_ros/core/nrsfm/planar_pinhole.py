@@ -1,0 +1,179 @@
+"""A ``planar`` result refined under the pinhole camera (a close camera's field of view).
+
+``perspective.perspective_solve`` corrects the tracks by the depth ratios of a weak-perspective
+solve and re-solves; for the planar model at a ~45 deg field of view that leaves errors 2-4x
+those of the same surface solved on tracks corrected by the *true* depths (BENCHMARKS, "Field
+of view").  Here the planar model itself is fitted to the pinhole image:
+
+- model: object-frame points ``(x_p, y_p, h_fp)`` -- rest coordinates in the plane and a height
+  along its normal in every frame -- with heights of rank ``rank`` over the frames,
+  ``h = C B`` (C (F, K), B (K, P)), seen by cameras ``(R_f, T_f)``: ``X_fp = R_f (x_p e1 +
+  y_p e2 + h_fp e3) + T_f``;
+- per round: every frame's pose by ``POSE_STEPS`` Gauss-Newton steps on the reprojection error
+  (all frames at once); C and B by ``ALTERNATIONS`` alternations of linear least squares on
+  the algebraic error ``m_fp x X_fp`` (m the track's ray ``K^-1 [u, v, 1]``); then the rest
+  coordinates (a 2 x 2 system per point);
+- start: the planar result in the camera frame (depth ``1 + z / f`` about each frame's centroid),
+  the object frame from frame 0's principal axes, C and B from the rank-K SVD of the first
+  heights along the rays.
+
+The refinement is kept only when it lowers the pinhole reprojection error of the start and
+every point stays in front of the camera; otherwise the input comes back unchanged.  Output in
+the stream's convention: per frame, shapes centred on the visible points in image units with
+the frame's centroid depth as the weak-perspective scale, so ``processing.to_metric`` back-
+projects them exactly (up to the stream's one global scale).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .perspective import check_intrinsics
+from .result import NRSfMResult
+
+ROUNDS = 12        # measured on ground-truth tracks (bench/study_planar_perspective.py): the
+#   error falls for ~10 rounds and then holds
+HEIGHT_RANK = 2    # rank of the heights over the frames
+POSE_STEPS = 3
+ALTERNATIONS = 3
+MIN_GAIN = 0.02    # kept when it cuts the start's pinhole reprojection error by this much
+MIN_DEPTH = 0.05   # every refined point's depth over its frame's centroid depth at least this
+
+
+def _pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np.ndarray,
+                steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the reprojection error of object points O (F, P, 3) against normalised
+    image points m (F, P, 2) with weights w (F, P), all frames at once."""
+    F, P = w.shape
+    J = np.empty((F, 6, 2, P))          # per frame, parameter, image axis, point: contiguous
+    r = np.empty((F, 2, P))             # rows for the (6 x 2P) @ (2P x 6) products
+    for _ in range(steps):
+        RO = O @ R.transpose(0, 2, 1)
+        a, b, c = RO[..., 0], RO[..., 1], RO[..., 2]
+        X, Y, Z = a + T[:, 0, None], b + T[:, 1, None], c + T[:, 2, None]
+        front = Z > 1e-6
+        iz = np.where(front, 1.0 / np.where(front, Z, 1.0), 0.0)
+        ww = w * front
+        wz = ww * iz
+        gx, gy = -X * iz * wz, -Y * iz * wz       # weighted d(u)/dZ, d(v)/dZ
+        r[:, 0] = (X * iz - m[..., 0]) * ww
+        r[:, 1] = (Y * iz - m[..., 1]) * ww
+        # d(projection)/d(pose): u = X / Z with dX, dY, dZ / d(rotation) the rows of -[RO]x,
+        # (0, c, -b), (-c, 0, a), (b, -a, 0), and the identity for the translation
+        J[:, 0, 0], J[:, 1, 0], J[:, 2, 0] = gx * b, wz * c - gx * a, -wz * b
+        J[:, 3, 0], J[:, 4, 0], J[:, 5, 0] = wz, 0.0, gx
+        J[:, 0, 1], J[:, 1, 1], J[:, 2, 1] = gy * b - wz * c, -gy * a, wz * a
+        J[:, 3, 1], J[:, 4, 1], J[:, 5, 1] = 0.0, wz, gy
+        Jf = J.reshape(F, 6, 2 * P)
+        JtJ = Jf @ Jf.transpose(0, 2, 1) + 1e-12 * np.eye(6)
+        Jtr = Jf @ r.reshape(F, 2 * P, 1)
+        d = np.linalg.solve(JtJ, -Jtr)[..., 0]
+        R = Rotation.from_rotvec(d[:, :3]).as_matrix() @ R
+        T = T + d[:, 3:]
+    return R, T
+
+
+def _reprojection(X: np.ndarray, m: np.ndarray, w: np.ndarray) -> float:
+    """Visibility-weighted mean distance (normalised image units) of X's image from m."""
+    z = X[..., 2:3]
+    if not (z > 0).all():
+        return np.inf
+    e = np.linalg.norm(X[..., :2] / z - m, axis=2)
+    return float((e * w).sum() / max(w.sum(), 1e-12))
+
+
+def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Object frame from frame 0's principal axes; per frame the rotation aligning frame 0's
+    centred points with the frame's (Kabsch) and its centroid: (R (F, 3, 3), T (F, 3), object
+    points (F, P, 3))."""
+    T = (X0 * w[..., None]).sum(1) / np.maximum(w.sum(1), 1e-12)[:, None]
+    C0 = X0 - T[:, None]
+    axes = np.linalg.svd(C0[0] - C0[0].mean(0), full_matrices=False)[2]
+    if np.linalg.det(axes) < 0:
+        axes[2] *= -1
+    H = np.einsum('fpi,pj->fij', C0, C0[0])
+    u, _, vt = np.linalg.svd(H)
+    sign = np.sign(np.linalg.det(u @ vt))
+    D = np.zeros((X0.shape[0], 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(sign == 0, 1.0, sign)
+    R = u @ D @ vt @ axes.T
+    return R, T, C0 @ R
+
+
+def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
+                          principal: np.ndarray, rounds: int = ROUNDS,
+                          rank: int = HEIGHT_RANK) -> NRSfMResult:
+    """``res`` (a weak-perspective or ``perspective_solve`` result of W (2F, P), V (F, P) in
+    image units) refined under the pinhole camera (focal px, principal point); see the module
+    docstring.  ``res`` itself when the refinement does not explain the image better."""
+    focal, principal = check_intrinsics(focal, principal)
+    if rounds < 1:
+        raise ValueError(f'rounds: expected >= 1, got {rounds}')
+    if rank < 1:
+        raise ValueError(f'rank: expected >= 1, got {rank}')
+    t0 = time.perf_counter()
+    F, P = V.shape
+    if not (np.isfinite(res.S).all() and np.isfinite(res.t).all()) or F < 3:
+        return res
+    w = (V >= 0.5).astype(np.float64)
+    m = (W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal        # (F, P, 2) rays
+    rays = np.concatenate([m, np.ones((F, P, 1))], 2)
+    X = res.S * res.scale[:, None, None] / focal                           # relative to depth
+    X0 = np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
+                   X[..., 1] + (res.t[:, None, 1] - principal[1]) / focal,
+                   1.0 + X[..., 2]], 2)
+    err0 = _reprojection(X0, m, w)
+    R, T, O = _start_pose(X0, w)
+    wr = w + 1e-9                     # a point never seen at V >= 0.5 keeps its mean position
+    rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
+    rank = min(rank, F, P)
+    Cf = Bp = None
+    eye = np.eye(rank)
+    for _ in range(rounds):
+        pts = np.concatenate([np.broadcast_to(rest, (F, P, 2)), h[..., None]], 2)
+        R, T = _pose_steps(pts, m, w, R, T, POSE_STEPS)
+        A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]
+        n = np.broadcast_to(R[:, None, :, 2], A.shape)
+        cA, cn = np.cross(rays, A), np.cross(rays, n)
+        gg, ga = (cn * cn).sum(2) * w, (cn * cA).sum(2) * w
+        if Cf is None:
+            U, s, Vt = np.linalg.svd(np.where(w > 0, -ga / np.maximum(gg, 1e-15), h),
+                                     full_matrices=False)
+            Cf, Bp = U[:, :rank] * s[:rank], Vt[:rank].copy()
+        ridge = 1e-9 * float(gg.sum()) / max(float(w.sum()), 1.0)
+        for _ in range(ALTERNATIONS):       # (matmul: einsum's 3-operand sums were 4 s)
+            BB = (Bp[:, None, :] * Bp[None]).reshape(rank * rank, -1)
+            Cf = np.linalg.solve((gg @ BB.T).reshape(F, rank, rank) + ridge * eye,
+                                 -(ga @ Bp.T)[..., None])[..., 0]
+            CC = (Cf[:, :, None] * Cf[:, None, :]).reshape(F, rank * rank)
+            Bp = np.linalg.solve((gg.T @ CC).reshape(P, rank, rank) + ridge * eye,
+                                 -(ga.T @ Cf)[..., None])[..., 0].T
+        h = Cf @ Bp
+        c1 = np.cross(rays, np.broadcast_to(R[:, None, :, 0], A.shape))
+        c2 = np.cross(rays, np.broadcast_to(R[:, None, :, 1], A.shape))
+        c0 = np.cross(rays, h[..., None] * n + T[:, None])
+        ww = w[..., None]
+        a11, a12 = (ww * c1 * c1).sum((0, 2)), (ww * c1 * c2).sum((0, 2))
+        a22 = (ww * c2 * c2).sum((0, 2))
+        b1, b2 = -(ww * c1 * c0).sum((0, 2)), -(ww * c2 * c0).sum((0, 2))
+        det = a11 * a22 - a12 ** 2
+        ok = det > 1e-12 * np.maximum(a11 * a22, 1e-300)
+        rest[ok, 0] = (a22 * b1 - a12 * b2)[ok] / det[ok]
+        rest[ok, 1] = (a11 * b2 - a12 * b1)[ok] / det[ok]
+    pts = np.concatenate([np.broadcast_to(rest, (F, P, 2)), h[..., None]], 2)
+    Xr = pts @ R.transpose(0, 2, 1) + T[:, None]
+    err = _reprojection(Xr, m, w)
+    if not (np.isfinite(Xr).all() and err < (1.0 - MIN_GAIN) * err0):
+        return res
+    mean = (Xr * w[..., None]).sum(1) / np.maximum(w.sum(1), 1e-12)[:, None]   # (F, 3)
+    if not (mean[:, 2] > 0).all() or (Xr[..., 2] < MIN_DEPTH * mean[:, None, 2]).any():
+        return res
+    scale = focal / mean[:, 2]
+    S = Xr - mean[:, None]
+    t = principal + mean[:, :2] * scale[:, None]
+    return replace(res, S=S, R=R, scale=scale, t=t, residual_px=err * focal,
+                   seconds=res.seconds + time.perf_counter() - t0)
