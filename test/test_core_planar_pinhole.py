@@ -112,3 +112,27 @@ def test_batch_stream_refines_planar_batches_with_the_camera(monkeypatch):
     st, e_off = run()
     assert st.pinhole_refinements == 0
     assert e_on < 0.5 * e_off, (e_on, e_off)
+
+
+def test_gross_track_errors_are_weighted_down():
+    """5% of the (track, frame) measurements off by 15-40 px, as the tracker's gross errors:
+    the Cauchy weights (``ROBUST_PX``) keep the fit near the truth where least squares
+    (``robust_px=0``) is pulled away."""
+    W, V, S = bending_sheet()
+    rng = np.random.default_rng(1)
+    F, P = V.shape
+    bad = rng.random((F, P)) < 0.05
+    bad[0] = False
+    angle = rng.uniform(0, 2 * np.pi, (F, P))
+    size = rng.uniform(15, 40, (F, P)) * bad
+    Wn = W.copy()
+    Wn[0::2] += size * np.cos(angle)
+    Wn[1::2] += size * np.sin(angle)
+    step = _step(Wn, V)
+    plain = refine_planar_pinhole(step, Wn, V, FOCAL, PRINCIPAL, robust_px=0.0)
+    robust = refine_planar_pinhole(step, Wn, V, FOCAL, PRINCIPAL)
+    e_plain = e3d_frobenius(plain.S, S, scale=True)
+    e_robust = e3d_frobenius(robust.S, S, scale=True)
+    assert e_robust < 0.3 * e_plain and e_robust < 0.03, (e_robust, e_plain)   # 0.018, 0.113
+    with pytest.raises(ValueError, match='robust_px'):
+        refine_planar_pinhole(step, Wn, V, FOCAL, PRINCIPAL, robust_px=-1.0)
