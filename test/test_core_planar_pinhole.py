@@ -136,3 +136,19 @@ def test_gross_track_errors_are_weighted_down():
     assert e_robust < 0.3 * e_plain and e_robust < 0.03, (e_robust, e_plain)   # 0.018, 0.113
     with pytest.raises(ValueError, match='robust_px'):
         refine_planar_pinhole(step, Wn, V, FOCAL, PRINCIPAL, robust_px=-1.0)
+
+
+def test_rounds_on_a_spread_subset_give_every_track_nearly_the_same_fit():
+    """``max_tracks``: poses and the heights' frame coefficients from a quarter of the tracks,
+    then every track's rest coordinates and heights in closed form: close to the fit on all
+    tracks, and far below the perspective step."""
+    W, V, S = bending_sheet(side=32)
+    step = _step(W, V)
+    full = refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=10**6)
+    sub = refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=256)
+    e_full, e_sub = (e3d_frobenius(r.S, S, scale=True) for r in (full, sub))
+    e_step = e3d_frobenius(step.S, S, scale=True)
+    assert sub.S.shape == step.S.shape
+    assert e_sub < 1.5 * e_full + 1e-3 and e_sub < 0.25 * e_step, (e_sub, e_full, e_step)
+    with pytest.raises(ValueError, match='max_tracks'):
+        refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=2)

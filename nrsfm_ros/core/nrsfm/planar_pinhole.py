@@ -47,6 +47,14 @@ ROBUST_PX = 5.0    # Cauchy scale (px) of the reprojection weights from the seco
 #   some tens of px) otherwise pull the fit.  Measured through the tracker at a 45 deg field of
 #   view (e3D, 0 / 5 / 8 / 12 px): sheet 30 deg 0.059 / 0.030 / 0.031 / 0.032, sheet 60 deg
 #   0.100 / 0.061 / 0.058 / -, flag 30 deg 0.030 at every scale (ground-truth tracks: no change)
+MAX_TRACKS = 1500  # the rounds on at most this many spread tracks (then every track from
+#   them): ground-truth tracks at 45 deg, 6k tracks, e3D all / 3000 / 1500 / 800: flag 30 deg
+#   0.0291 / 0.0292 / 0.0292 / 0.0294, sheet 60 deg 0.0132 / 0.0133 / 0.0133 / 0.0133, flag
+#   30 deg amplitude 2 0.0575 / 0.0573 / 0.0574 / 0.0578, sheet 12 deg 0.0394 / 0.0410 /
+#   0.0411 / 0.0409
+FINAL_PASSES = 6   # per-point passes giving every track its rest coordinates and heights
+#   (bending sheet, a quarter of the tracks in the rounds: e3D 0.024 / 0.0097 / 0.0058 /
+#   0.0056 after 1 / 3 / 6 / 12 passes; all tracks in the rounds 0.0045)
 MIN_GAIN = 0.02    # kept when it cuts the start's pinhole reprojection error by this much
 MIN_DEPTH = 0.05   # every refined point's depth over its frame's centroid depth at least this
 
@@ -117,12 +125,102 @@ def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return R, T, C0 @ R
 
 
+def _cauchy(pts: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray, w0: np.ndarray,
+            robust: float) -> np.ndarray:
+    """Weights w0 x the Cauchy weight at scale ``robust`` (normalised units) of each point's
+    reprojection error."""
+    X = pts @ R.transpose(0, 2, 1) + T[:, None]
+    e = np.linalg.norm(X[..., :2] / np.maximum(X[..., 2:3], 1e-6) - m, axis=2)
+    return w0 / (1.0 + (e / robust) ** 2)
+
+
+def _height_terms(rays: np.ndarray, R: np.ndarray, T: np.ndarray, rest: np.ndarray,
+                  w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The algebraic error of X = A + h n (A the rest point posed, n the normal) is
+    |m x A + h m x n|^2 = gg h^2 + 2 ga h + const: (gg, ga), each (F, P), weighted."""
+    A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]
+    n = np.broadcast_to(R[:, None, :, 2], A.shape)
+    cA, cn = np.cross(rays, A), np.cross(rays, n)
+    return (cn * cn).sum(2) * w, (cn * cA).sum(2) * w
+
+
+def _solve_B(gg: np.ndarray, ga: np.ndarray, Cf: np.ndarray, ridge: float) -> np.ndarray:
+    """Point basis B (K, P) of the heights h = C B minimising sum gg h^2 + 2 ga h, C given."""
+    F, K = Cf.shape
+    CC = (Cf[:, :, None] * Cf[:, None, :]).reshape(F, K * K)
+    return np.linalg.solve((gg.T @ CC).reshape(-1, K, K) + ridge * np.eye(K),
+                           -(ga.T @ Cf)[..., None])[..., 0].T
+
+
+def _solve_C(gg: np.ndarray, ga: np.ndarray, Bp: np.ndarray, ridge: float) -> np.ndarray:
+    """Frame coefficients C (F, K) of the heights, B given (matmul: einsum's 3-operand sums
+    were 4 s of the 9)."""
+    K = Bp.shape[0]
+    BB = (Bp[:, None, :] * Bp[None]).reshape(K * K, -1)
+    return np.linalg.solve((gg @ BB.T).reshape(-1, K, K) + ridge * np.eye(K),
+                           -(ga @ Bp.T)[..., None])[..., 0]
+
+
+def _solve_rest(rays: np.ndarray, R: np.ndarray, T: np.ndarray, h: np.ndarray, w: np.ndarray,
+                rest: np.ndarray) -> np.ndarray:
+    """Rest coordinates (P, 2) minimising the algebraic error over the frames, the heights
+    given (a 2 x 2 system per point; a point without enough views keeps ``rest``)."""
+    shape = rays.shape
+    c1 = np.cross(rays, np.broadcast_to(R[:, None, :, 0], shape))
+    c2 = np.cross(rays, np.broadcast_to(R[:, None, :, 1], shape))
+    c0 = np.cross(rays, h[..., None] * np.broadcast_to(R[:, None, :, 2], shape) + T[:, None])
+    ww = w[..., None]
+    a11, a12 = (ww * c1 * c1).sum((0, 2)), (ww * c1 * c2).sum((0, 2))
+    a22 = (ww * c2 * c2).sum((0, 2))
+    b1, b2 = -(ww * c1 * c0).sum((0, 2)), -(ww * c2 * c0).sum((0, 2))
+    det = a11 * a22 - a12 ** 2
+    ok = det > 1e-12 * np.maximum(a11 * a22, 1e-300)
+    rest = rest.copy()
+    rest[ok, 0] = (a22 * b1 - a12 * b2)[ok] / det[ok]
+    rest[ok, 1] = (a11 * b2 - a12 * b1)[ok] / det[ok]
+    return rest
+
+
+def _posed(rest: np.ndarray, h: np.ndarray) -> np.ndarray:
+    F, P = h.shape
+    return np.concatenate([np.broadcast_to(rest, (F, P, 2)), h[..., None]], 2)
+
+
+def _fit(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray, rest: np.ndarray,
+         h: np.ndarray, rounds: int, rank: int, robust: float
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The rounds of the module docstring on the points given: (R, T, C, B, rest)."""
+    m = rays[..., :2]
+    w, Cf = w0, None
+    for rnd in range(rounds):
+        pts = _posed(rest, h)
+        if robust > 0 and rnd > 0:
+            w = _cauchy(pts, R, T, m, w0, robust)
+        R, T = _pose_steps(pts, m, w, R, T, POSE_STEPS)
+        gg, ga = _height_terms(rays, R, T, rest, w)
+        if Cf is None:
+            U, s, Vt = np.linalg.svd(np.where(w > 0, -ga / np.maximum(gg, 1e-15), h),
+                                     full_matrices=False)
+            Cf, Bp = U[:, :rank] * s[:rank], Vt[:rank].copy()
+        ridge = 1e-9 * float(gg.sum()) / max(float(w.sum()), 1.0)
+        for _ in range(ALTERNATIONS):
+            Cf = _solve_C(gg, ga, Bp, ridge)
+            Bp = _solve_B(gg, ga, Cf, ridge)
+        h = Cf @ Bp
+        rest = _solve_rest(rays, R, T, h, w, rest)
+    return R, T, Cf, Bp, rest
+
+
 def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
                           principal: np.ndarray, rounds: int = ROUNDS,
-                          rank: int = HEIGHT_RANK, robust_px: float = ROBUST_PX) -> NRSfMResult:
+                          rank: int = HEIGHT_RANK, robust_px: float = ROBUST_PX,
+                          max_tracks: int = MAX_TRACKS) -> NRSfMResult:
     """``res`` (a weak-perspective or ``perspective_solve`` result of W (2F, P), V (F, P) in
     image units) refined under the pinhole camera (focal px, principal point); see the module
-    docstring.  ``res`` itself when the refinement does not explain the image better."""
+    docstring.  ``res`` itself when the refinement does not explain the image better.
+    ``max_tracks``: the rounds run on at most this many tracks spread over the set; the poses
+    and the heights' frame coefficients found there then give every track its rest
+    coordinates and height basis (per-point closed forms, ``FINAL_PASSES`` times)."""
     focal, principal = check_intrinsics(focal, principal)
     if rounds < 1:
         raise ValueError(f'rounds: expected >= 1, got {rounds}')
@@ -131,71 +229,48 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     if not (np.isfinite(robust_px) and robust_px >= 0):
         raise ValueError(f'robust_px: expected a finite value >= 0 (0: least squares), got '
                          f'{robust_px}')
+    if max_tracks < 4:
+        raise ValueError(f'max_tracks: expected >= 4, got {max_tracks}')
     t0 = time.perf_counter()
     F, P = V.shape
     if not (np.isfinite(res.S).all() and np.isfinite(res.t).all()) or F < 3:
         return res
-    w = (V >= 0.5).astype(np.float64)
+    w0 = (V >= 0.5).astype(np.float64)
     m = (W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal        # (F, P, 2) rays
     rays = np.concatenate([m, np.ones((F, P, 1))], 2)
     X = res.S * res.scale[:, None, None] / focal                           # relative to depth
     X0 = np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
                    X[..., 1] + (res.t[:, None, 1] - principal[1]) / focal,
                    1.0 + X[..., 2]], 2)
-    err0 = _reprojection(X0, m, w, robust_px / focal)
-    R, T, O = _start_pose(X0, w)
-    wr = w + 1e-9                     # a point never seen at V >= 0.5 keeps its mean position
+    robust = robust_px / focal
+    err0 = _reprojection(X0, m, w0, robust)
+    R, T, O = _start_pose(X0, w0)
+    wr = w0 + 1e-9                    # a point never seen at V >= 0.5 keeps its mean position
     rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
     rank = min(rank, F, P)
-    Cf = Bp = None
-    eye = np.eye(rank)
-    w0 = w
-    for rnd in range(rounds):
-        pts = np.concatenate([np.broadcast_to(rest, (F, P, 2)), h[..., None]], 2)
-        if robust_px > 0 and rnd > 0:       # Cauchy weights of the last round's residuals
-            Xc = pts @ R.transpose(0, 2, 1) + T[:, None]
-            e = np.linalg.norm(Xc[..., :2] / np.maximum(Xc[..., 2:3], 1e-6) - m, axis=2)
-            w = w0 / (1.0 + (e * focal / robust_px) ** 2)
-        R, T = _pose_steps(pts, m, w, R, T, POSE_STEPS)
-        A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]
-        n = np.broadcast_to(R[:, None, :, 2], A.shape)
-        cA, cn = np.cross(rays, A), np.cross(rays, n)
-        gg, ga = (cn * cn).sum(2) * w, (cn * cA).sum(2) * w
-        if Cf is None:
-            U, s, Vt = np.linalg.svd(np.where(w > 0, -ga / np.maximum(gg, 1e-15), h),
-                                     full_matrices=False)
-            Cf, Bp = U[:, :rank] * s[:rank], Vt[:rank].copy()
-        ridge = 1e-9 * float(gg.sum()) / max(float(w.sum()), 1.0)
-        for _ in range(ALTERNATIONS):       # (matmul: einsum's 3-operand sums were 4 s)
-            BB = (Bp[:, None, :] * Bp[None]).reshape(rank * rank, -1)
-            Cf = np.linalg.solve((gg @ BB.T).reshape(F, rank, rank) + ridge * eye,
-                                 -(ga @ Bp.T)[..., None])[..., 0]
-            CC = (Cf[:, :, None] * Cf[:, None, :]).reshape(F, rank * rank)
-            Bp = np.linalg.solve((gg.T @ CC).reshape(P, rank, rank) + ridge * eye,
-                                 -(ga.T @ Cf)[..., None])[..., 0].T
-        h = Cf @ Bp
-        c1 = np.cross(rays, np.broadcast_to(R[:, None, :, 0], A.shape))
-        c2 = np.cross(rays, np.broadcast_to(R[:, None, :, 1], A.shape))
-        c0 = np.cross(rays, h[..., None] * n + T[:, None])
-        ww = w[..., None]
-        a11, a12 = (ww * c1 * c1).sum((0, 2)), (ww * c1 * c2).sum((0, 2))
-        a22 = (ww * c2 * c2).sum((0, 2))
-        b1, b2 = -(ww * c1 * c0).sum((0, 2)), -(ww * c2 * c0).sum((0, 2))
-        det = a11 * a22 - a12 ** 2
-        ok = det > 1e-12 * np.maximum(a11 * a22, 1e-300)
-        rest[ok, 0] = (a22 * b1 - a12 * b2)[ok] / det[ok]
-        rest[ok, 1] = (a11 * b2 - a12 * b1)[ok] / det[ok]
-    pts = np.concatenate([np.broadcast_to(rest, (F, P, 2)), h[..., None]], 2)
-    Xr = pts @ R.transpose(0, 2, 1) + T[:, None]
-    if not (np.isfinite(Xr).all() and
-            _reprojection(Xr, m, w0, robust_px / focal) < (1.0 - MIN_GAIN) * err0):
+    idx = np.unique(np.linspace(0, P - 1, max_tracks).round().astype(np.intp)) \
+        if P > max_tracks else np.arange(P)
+    R, T, Cf, Bp, rest_sub = _fit(rays[:, idx], w0[:, idx], R, T, rest[idx], h[:, idx],
+                                  rounds, rank, robust)
+    if idx.size < P:                  # every track from the subset's poses and C
+        w = w0
+        ridge = 1e-9
+        for k in range(FINAL_PASSES):
+            if robust > 0 and k > 0:
+                w = _cauchy(_posed(rest, h), R, T, m, w0, robust)
+            gg, ga = _height_terms(rays, R, T, rest, w)
+            h = Cf @ _solve_B(gg, ga, Cf, ridge * float(gg.sum()) / max(float(w.sum()), 1.0))
+            rest = _solve_rest(rays, R, T, h, w, rest)
+    else:
+        rest, h = rest_sub, Cf @ Bp
+    Xr = _posed(rest, h) @ R.transpose(0, 2, 1) + T[:, None]
+    if not (np.isfinite(Xr).all() and _reprojection(Xr, m, w0, robust) < (1.0 - MIN_GAIN) * err0):
         return res
-    mean = (Xr * w[..., None]).sum(1) / np.maximum(w.sum(1), 1e-12)[:, None]   # (F, 3)
+    mean = (Xr * w0[..., None]).sum(1) / np.maximum(w0.sum(1), 1e-12)[:, None]   # (F, 3)
     if not (mean[:, 2] > 0).all() or (Xr[..., 2] < MIN_DEPTH * mean[:, None, 2]).any():
         return res
     scale = focal / mean[:, 2]
-    S = Xr - mean[:, None]
-    t = principal + mean[:, :2] * scale[:, None]
-    return replace(res, S=S, R=R, scale=scale, t=t,
+    return replace(res, S=Xr - mean[:, None], R=R, scale=scale,
+                   t=principal + mean[:, :2] * scale[:, None],
                    residual_px=_reprojection(Xr, m, w0) * focal,
                    seconds=res.seconds + time.perf_counter() - t0)
