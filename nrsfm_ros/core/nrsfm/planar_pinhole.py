@@ -137,11 +137,15 @@ def _cauchy(pts: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray, w0: np
 def _height_terms(rays: np.ndarray, R: np.ndarray, T: np.ndarray, rest: np.ndarray,
                   w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The algebraic error of X = A + h n (A the rest point posed, n the normal) is
-    |m x A + h m x n|^2 = gg h^2 + 2 ga h + const: (gg, ga), each (F, P), weighted."""
-    A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]
-    n = np.broadcast_to(R[:, None, :, 2], A.shape)
-    cA, cn = np.cross(rays, A), np.cross(rays, n)
-    return (cn * cn).sum(2) * w, (cn * cA).sum(2) * w
+    |m x A + h m x n|^2 = gg h^2 + 2 ga h + const: (gg, ga), each (F, P), weighted.  By
+    (m x a) . (m x b) = |m|^2 a . b - (m . a)(m . b): no (F, P, 3) cross products."""
+    A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]                # (F, P, 3)
+    n = R[:, :, 2]                                                        # (F, 3) unit
+    mm = (rays * rays).sum(2)
+    mn = rays @ n[:, :, None]                                             # (F, P, 1)
+    gg = mm - mn[..., 0] ** 2
+    ga = mm * (A @ n[:, :, None])[..., 0] - mn[..., 0] * (rays * A).sum(2)
+    return gg * w, ga * w
 
 
 def _solve_B(gg: np.ndarray, ga: np.ndarray, Cf: np.ndarray, ridge: float) -> np.ndarray:
@@ -164,15 +168,20 @@ def _solve_C(gg: np.ndarray, ga: np.ndarray, Bp: np.ndarray, ridge: float) -> np
 def _solve_rest(rays: np.ndarray, R: np.ndarray, T: np.ndarray, h: np.ndarray, w: np.ndarray,
                 rest: np.ndarray) -> np.ndarray:
     """Rest coordinates (P, 2) minimising the algebraic error over the frames, the heights
-    given (a 2 x 2 system per point; a point without enough views keeps ``rest``)."""
-    shape = rays.shape
-    c1 = np.cross(rays, np.broadcast_to(R[:, None, :, 0], shape))
-    c2 = np.cross(rays, np.broadcast_to(R[:, None, :, 1], shape))
-    c0 = np.cross(rays, h[..., None] * np.broadcast_to(R[:, None, :, 2], shape) + T[:, None])
-    ww = w[..., None]
-    a11, a12 = (ww * c1 * c1).sum((0, 2)), (ww * c1 * c2).sum((0, 2))
-    a22 = (ww * c2 * c2).sum((0, 2))
-    b1, b2 = -(ww * c1 * c0).sum((0, 2)), -(ww * c2 * c0).sum((0, 2))
+    given (a 2 x 2 system per point; a point without enough views keeps ``rest``).  The error
+    is |m x (x e1 + y e2 + c)|^2 with e1, e2 the plane's axes in the camera and c = h n + T;
+    its normal equations by the same identity as in ``_height_terms``."""
+    mm = (rays * rays).sum(2)                                             # (F, P)
+    me = rays @ R[:, :, :2]                                               # (F, P, 2): m . e_k
+    c = h[..., None] * R[:, None, :, 2] + T[:, None]                      # (F, P, 3)
+    mc = (rays * c).sum(2)
+    e1e2 = (R[:, :, 0] * R[:, :, 1]).sum(1)[:, None]                      # ~0 (orthonormal)
+    ec = c @ R[:, :, :2]                                                  # (F, P, 2): e_k . c
+    a11 = (w * (mm - me[..., 0] ** 2)).sum(0)
+    a22 = (w * (mm - me[..., 1] ** 2)).sum(0)
+    a12 = (w * (mm * e1e2 - me[..., 0] * me[..., 1])).sum(0)
+    b1 = -(w * (mm * ec[..., 0] - me[..., 0] * mc)).sum(0)
+    b2 = -(w * (mm * ec[..., 1] - me[..., 1] * mc)).sum(0)
     det = a11 * a22 - a12 ** 2
     ok = det > 1e-12 * np.maximum(a11 * a22, 1e-300)
     rest = rest.copy()
