@@ -224,3 +224,29 @@ def test_period_validation_names_the_field(value):
         SynthConfig(period_frames=value).validate()
     with pytest.raises(ValueError, match='period_frames'):
         dense_tracks('flag', frames=5, points=10, period_frames=value)
+
+
+def test_pinhole_recurrence_poses_the_state_by_the_camera(flag_states):
+    """A state seen again by a close pinhole camera (the flag ~1.2 focal lengths wide at a
+    depth of 2 of its widths: strong perspective): the orthographic fit leaves pixels of
+    residual, so without the camera the frame is not a recurrence; with it (``camera=``) every
+    state is posed by the pinhole camera, the right one explains the image to ~0 px, and the
+    frame comes back as that state in that pose (image units, centred, the centroid's depth as
+    the scale: the stream's convention)."""
+    focal, c = 300.0, np.array([160.0, 120.0])
+    rng = np.random.default_rng(4)
+    R = _rotation(rng)
+    k = 1
+    O = flag_states[k] / focal                         # units of the focal length
+    width = np.ptp(O[:, 0])
+    T = np.array([0.05, -0.03, 2.0 * width])
+    X = O @ R.T + T
+    uv = c + focal * X[:, :2] / X[:, 2:3]
+    prior = DynamicShapePrior(flag_states, recurrence_px=0.5)
+    assert not prior.step(uv, None).recurring
+    out = prior.step(uv, None, camera=(focal, c))
+    assert out.recurring and out.state == k and out.residual_px < 1e-3
+    mean = X.mean(axis=0)
+    np.testing.assert_allclose(out.X, (X - mean) * focal / mean[2], atol=1e-3 * focal)
+    np.testing.assert_allclose(out.t, c + mean[:2] * focal / mean[2], atol=1e-3)
+    assert prior.recurrences == 1 and prior.frames == 2

@@ -59,7 +59,7 @@ MIN_GAIN = 0.02    # kept when it cuts the start's pinhole reprojection error by
 MIN_DEPTH = 0.05   # every refined point's depth over its frame's centroid depth at least this
 
 
-def _pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np.ndarray,
+def pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np.ndarray,
                 steps: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton on the reprojection error of object points O (F, P, 3) against normalised
     image points m (F, P, 2) with weights w (F, P), all frames at once."""
@@ -205,7 +205,7 @@ def _fit(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray, rest: n
         pts = _posed(rest, h)
         if robust > 0 and rnd > 0:
             w = _cauchy(pts, R, T, m, w0, robust)
-        R, T = _pose_steps(pts, m, w, R, T, POSE_STEPS)
+        R, T = pose_steps(pts, m, w, R, T, POSE_STEPS)
         gg, ga = _height_terms(rays, R, T, rest, w)
         if Cf is None:
             U, s, Vt = np.linalg.svd(np.where(w > 0, -ga / np.maximum(gg, 1e-15), h),
