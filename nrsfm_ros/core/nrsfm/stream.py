@@ -51,7 +51,7 @@ import numpy as np
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .planar_pinhole import refine_planar_pinhole
-from .perspective import (check_intrinsics, frame_errors, frame_reflections,
+from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
 from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
@@ -266,6 +266,8 @@ class StreamNRSfM:
         self._flip = np.ones(3)                       # reflection of the last _emit
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
         self.prior: DynamicShapePrior | ShapePrior | None = None   # dspr / spva: the prior
+        self._batch_perspective = False               # the last batch solve was perspective
+        self._prior_perspective = False               # spva's prior from a perspective batch
         self._prior_ids = np.empty(0, np.int64)
         self._new_ids: set[int] = set()
         self.dspr_seconds: list[float] = []           # dspr: per-frame solve time after the prior
@@ -391,6 +393,7 @@ class StreamNRSfM:
             if self._solver is _solve_default and self.projection == 'perspective':
                 return _solve_default(W, V, self.method, self.rank, self._intrinsics)
             return self._solver(W, V, self.method, self.rank)
+        self._batch_perspective = False
         if self.projection != 'perspective' or self._intrinsics is None:
             res = solve(W, V)
         else:
@@ -422,6 +425,7 @@ class StreamNRSfM:
                 self.pinhole_refinements += refined is not start
                 res = refined if refined is not start else res
             self.perspective_solves += res is not weak
+            self._batch_perspective = res is not weak
         self.last_method = res.method
         return res
 
@@ -533,6 +537,7 @@ class StreamNRSfM:
                                for i in sorted(pending)]
             return res
         self.prior, self._prior_ids = prior, ids
+        self._prior_perspective = self._batch_perspective
         return out
 
     # ------------------------------------------------------------------ dspr
@@ -565,14 +570,26 @@ class StreamNRSfM:
         uv = np.full((pids.size, 2), np.nan)
         vis = np.zeros(pids.size)
         fuv = fr.uv
-        # with the camera the prior poses its states by the pinhole camera on the pixels and
-        # corrects them by the best posed state's depth ratios for its energy (dspr.py)
-        camera = self._intrinsics if self.projection == 'perspective' else None
+        # with the camera dspr's prior poses its states by the pinhole camera on the pixels
+        # and corrects them by the best posed state's depth ratios for its energy (dspr.py)
+        camera = self._intrinsics if self.projection == 'perspective' and \
+            isinstance(self.prior, DynamicShapePrior) else None
+        if camera is None and self._prior_perspective and self._intrinsics is not None and \
+                self._published:
+            # spva's prior is in weak-perspective-equivalent coordinates: correct the tracks
+            # by the depth ratio 1 + z / f of the last published shape (perspective.py)
+            focal, c = self._intrinsics
+            last = self._published[-1]
+            lcol, lhave = _lookup(np.sort(last.ids), fr.ids)
+            z = np.zeros(fr.ids.size)
+            z[lhave] = last.X[np.argsort(last.ids)[lcol[lhave]], 2]
+            fuv = c + (fr.uv - c) * np.clip(1.0 + z / focal, *RATIO_RANGE)[:, None]
         uv[col[have]] = fuv[have]
         vis[col[have]] = np.maximum(fr.vis[have], 1e-3)    # occluded: weakly kept, as _tracks
         vis[~np.isfinite(uv).all(axis=1)] = 0.0
         try:
-            out = self.prior.step(uv, vis, camera=camera)
+            out = self.prior.step(uv, vis, camera=camera) if camera is not None else \
+                self.prior.step(uv, vis)
         except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
             self.fallbacks.append((fr.index, f'dspr: {type(err).__name__}: {err}'))
             return _flat_shape(fr)
