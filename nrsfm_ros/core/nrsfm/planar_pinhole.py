@@ -60,9 +60,10 @@ MIN_DEPTH = 0.05   # every refined point's depth over its frame's centroid depth
 
 
 def pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np.ndarray,
-                steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton on the reprojection error of object points O (F, P, 3) against normalised
-    image points m (F, P, 2) with weights w (F, P), all frames at once."""
+               steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``steps`` Gauss-Newton steps on the reprojection error of object points O (F, P, 3)
+    posed as ``R_f O + T_f`` against normalised image points m (F, P, 2) with weights
+    w (F, P), all frames (or, for ``dspr``, all candidate shapes) at once: (R, T)."""
     F, P = w.shape
     J = np.empty((F, 6, 2, P))          # per frame, parameter, image axis, point: contiguous
     r = np.empty((F, 2, P))             # rows for the (6 x 2P) @ (2P x 6) products
