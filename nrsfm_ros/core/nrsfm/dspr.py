@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .perspective import RATIO_RANGE
+from .planar_pinhole import pose_steps
 from .result import NRSfMResult
 
 PROCRUSTES_ITERATIONS = 8     # majorisation steps of the orthonormal-rows fit after the affine
@@ -172,7 +173,6 @@ def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal:
     pinhole camera on the raw tracks uv (P, 2), weights v (P,): ``PINHOLE_STEPS`` Gauss-Newton
     steps from the orthographic fit ``start`` (the camera rows, the scale as the inverse
     centroid depth, the image position of the weighted centroid)."""
-    from .planar_pinhole import pose_steps
     K, P, _ = states.shape
     O = states / focal
     R = np.concatenate([start.R2, np.cross(start.R2[:, 0], start.R2[:, 1])[:, None]], 1)

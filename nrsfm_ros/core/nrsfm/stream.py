@@ -50,9 +50,9 @@ import numpy as np
 
 from .dspr import DynamicShapePrior, object_shapes, shape_distance
 from .factorization import low_rank, rigid
-from .planar_pinhole import refine_planar_pinhole
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
+from .planar_pinhole import refine_planar_pinhole
 from .result import NRSfMResult
 from .spva import WEIGHTINGS, ShapePrior
 
