@@ -31,7 +31,8 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .perspective import RATIO_RANGE
-from .planar_pinhole import pose_steps
+from .extend import spread_subset
+from .planar_pinhole import pose_steps, stream_convention
 from .result import NRSfMResult
 
 PROCRUSTES_ITERATIONS = 8     # majorisation steps of the orthonormal-rows fit after the affine
@@ -182,8 +183,7 @@ def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal:
         - np.einsum('kij,kj->ki', R, c)
     m = np.broadcast_to((uv - principal) / focal, (K, P, 2))
     seen = np.flatnonzero(v > 0)        # the pose from at most PINHOLE_TRACKS spread tracks
-    sub = seen[np.unique(np.linspace(0, seen.size - 1, min(PINHOLE_TRACKS, seen.size))
-                         .round().astype(np.intp))]
+    sub = seen[spread_subset(seen.size, PINHOLE_TRACKS)]
     R, T = pose_steps(O[:, sub], m[:, sub], np.broadcast_to(v[sub], (K, sub.size)), R, T,
                       PINHOLE_STEPS)
     X = O @ R.transpose(0, 2, 1) + T[:, None]
@@ -332,11 +332,10 @@ class DynamicShapePrior:
             X = states[best] / focal @ pin.R[best].T + pin.T[best]
             if pin.residual_px[best] <= self.recurrence_px:
                 self.recurrences += 1
-                mean = v @ X / v.sum()
-                s = focal / mean[2]
-                t = principal + mean[:2] * s
-                self.stored.append((best, pin.R[best][:2], float(s), t))
-                return DSPRFrame(X=(X - mean) * s, t=t, R=pin.R[best], scale=float(s),
+                Xc, sc, tc = stream_convention(X[None], v[None], focal, principal)
+                s, t = float(sc[0]), tc[0]
+                self.stored.append((best, pin.R[best][:2], s, t))
+                return DSPRFrame(X=Xc[0] * s, t=t, R=pin.R[best], scale=s,
                                  state=best, recurring=True, added=False,
                                  residual_px=float(pin.residual_px[best]),
                                  seconds=time.perf_counter() - t0)

@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .extend import spread_subset
 from .perspective import check_intrinsics
 from .result import NRSfMResult
 
@@ -258,8 +259,7 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     wr = w0 + 1e-9                    # a point never seen at V >= 0.5 keeps its mean position
     rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
     rank = min(rank, F, P)
-    idx = np.unique(np.linspace(0, P - 1, max_tracks).round().astype(np.intp)) \
-        if P > max_tracks else np.arange(P)
+    idx = spread_subset(P, max_tracks)
     R, T, Cf, Bp, rest_sub = _fit(rays[:, idx], w0[:, idx], R, T, rest[idx], h[:, idx],
                                   rounds, rank, robust)
     if idx.size < P:                  # every track from the subset's poses and C
@@ -279,8 +279,18 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     mean = (Xr * w0[..., None]).sum(1) / np.maximum(w0.sum(1), 1e-12)[:, None]   # (F, 3)
     if not (mean[:, 2] > 0).all() or (Xr[..., 2] < MIN_DEPTH * mean[:, None, 2]).any():
         return res
-    scale = focal / mean[:, 2]
-    return replace(res, S=Xr - mean[:, None], R=R, scale=scale,
-                   t=principal + mean[:, :2] * scale[:, None],
+    S, scale, t = stream_convention(Xr, w0, focal, principal)
+    return replace(res, S=S, R=R, scale=scale, t=t,
                    residual_px=_reprojection(Xr, m, w0) * focal,
                    seconds=res.seconds + time.perf_counter() - t0)
+
+
+def stream_convention(X: np.ndarray, w: np.ndarray, focal: float, principal: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame points X (F, P, 3) (any one unit) in the stream's convention: per frame
+    the shape centred on its w-weighted centroid (w (F, P)) in that unit, the scale
+    focal / the centroid's depth (so ``S * scale`` is in image units) and the centroid's image
+    position t (F, 2): ``processing.to_metric`` back-projects them exactly."""
+    mean = (X * w[..., None]).sum(1) / np.maximum(w.sum(1), 1e-12)[:, None]
+    scale = focal / mean[:, 2]
+    return X - mean[:, None], scale, principal + mean[:, :2] * scale[:, None]
