@@ -26,6 +26,7 @@ from .render import render_stream
 OUTPUTS = {TOPICS[k]: t for k, t in [
     ('tracks', 'sensor_msgs/msg/PointCloud2'), ('flow', 'sensor_msgs/msg/Image'),
     ('points', 'sensor_msgs/msg/PointCloud2'), ('nrsfm_depth', 'sensor_msgs/msg/Image'),
+    ('object_pose', 'geometry_msgs/msg/TransformStamped'),
     ('aligned', 'sensor_msgs/msg/PointCloud2'),
     ('transform', 'geometry_msgs/msg/TransformStamped'),
     ('displacement', 'sensor_msgs/msg/PointCloud2'),
@@ -136,7 +137,8 @@ def summarise(out_bag: Path, seq: SynthSequence, out_dir: Path) -> dict[str, Any
 
 
 # every output topic of the node graph, in pipeline order: the summary and `evaluate` count each
-OUTPUT_TOPICS = tuple(TOPICS[k] for k in ('tracks', 'points', 'nrsfm_depth', 'aligned',
+OUTPUT_TOPICS = tuple(TOPICS[k] for k in ('tracks', 'points', 'nrsfm_depth', 'object_pose',
+                                          'aligned',
                                           'transform', 'displacement', 'camera_pose',
                                           'scene_flow', 'markers', 'flow'))
 

@@ -263,8 +263,13 @@ class ReconstructorParams(Params):
     hdmnet_model: str = rule('', None, 'hdmnet: ONNX model file (empty: the shipped '
                              'nrsfm_ros/models/hdmnet.onnx)')
     hdmnet_threads: int = rule(2, _at_least(1), 'hdmnet: ONNX Runtime threads')
-    mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m): the global '
-                             'scale of the metric output, which one camera cannot observe')
+    mean_depth: float = rule(4.0, _positive, 'distance to the surface centroid (m) over the '
+                             'first solve\'s frames: the global scale of the metric output, '
+                             'which one camera cannot observe (each frame\'s depth follows '
+                             'its weak-perspective scale)')
+    object_frame: str = rule('nrsfm_object', _frame_id, 'child frame of nrsfm/object_pose '
+                             '(the reconstruction\'s object frame, posed in the camera optical '
+                             'frame of each cloud)')
     publish_depth: bool = rule(True, None, 'publish nrsfm/depth (32FC1 metres, NaN off the '
                                'surface; needs CameraInfo or focal_length_px)')
     focal_length_px: float = rule(0.0, _non_negative,
@@ -377,6 +382,11 @@ class SceneFlowParams(Params):
                             'is fitted on (a fixed subset of the ids; 0: all)')
     softness: float = rule(0.1, _positive, 'nrsfm object frame: track weight 1 / (spread^2 + '
                            '(softness * median spread)^2)')
+    ego_motion: str = rule('auto', _one_of('auto', 'estimate'), 'nrsfm object frame: auto '
+                           '(the reconstructor\'s cameras from nrsfm/object_pose where they '
+                           'come with the clouds, its clouds\' shared centroid held still; '
+                           'else estimated) or estimate (always estimated from the clouds: '
+                           'the most rigid part held still)')
     shrinkage: str = rule('jitter', _one_of('jitter', 'none'), 'nrsfm object frame: jitter '
                           '(scale each point\'s flow toward zero by max(0, 1 - 6 sigma^2 / mean '
                           '|d|^2 over its 16 nearest points), sigma the jitter measured over the '

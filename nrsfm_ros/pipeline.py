@@ -34,6 +34,7 @@ ROUTES: dict[str, list[tuple[str, str]]] = {
     TOPICS['depth']: [('scene_flow', 'depth')],   # scene_flow method msf (RGB-D)
     TOPICS['tracks']: [('reconstructor', 'tracks')],
     TOPICS['points']: [('registrar', 'points'), ('scene_flow', 'points')],
+    TOPICS['object_pose']: [('scene_flow', 'object_pose')],
     TOPICS['reference']: [('registrar', 'reference')],
 }
 

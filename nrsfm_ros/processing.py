@@ -43,12 +43,13 @@ HDMNET_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', '8UC3')
 
 PC2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
+TRANSFORM = 'geometry_msgs/msg/TransformStamped'
 
 TOPICS = {
     'image': 'camera/image_raw', 'image_compressed': 'camera/image_raw/compressed',
     'camera_info': 'camera/camera_info', 'depth': 'camera/depth/image_raw',
     'tracks': 'nrsfm/tracks', 'flow': 'nrsfm/flow', 'points': 'nrsfm/points',
-    'nrsfm_depth': 'nrsfm/depth',
+    'nrsfm_depth': 'nrsfm/depth', 'object_pose': 'nrsfm/object_pose',
     'reference': 'registration/reference', 'aligned': 'registration/aligned',
     'transform': 'registration/transform', 'displacement': 'registration/displacement',
     'camera_pose': 'registration/camera_pose',
@@ -566,7 +567,15 @@ class ReconstructorProcessor(Processor):
         K = self._intrinsics()
         for sh in shapes:
             stamp, frame, uv_all = self._pending.pop(sh.index)
-            X = to_metric(sh.X, sh.t, K, self.params.mean_depth).astype(np.float32)
+            depth = self.params.mean_depth * (sh.depth_ratio or 1.0)
+            X = to_metric(sh.X, sh.t, K, depth).astype(np.float32)
+            if sh.R is not None:        # before the cloud: scene_flow pairs it on arrival
+                T = np.eye(4)
+                T[:3, :3] = sh.R
+                T[:3, 3] = to_metric(np.zeros((1, 3)), sh.t, K, depth)[0]
+                out.append((TOPICS['object_pose'], TRANSFORM,
+                            transform_msg(self.factory, T, stamp, frame,
+                                          self.params.object_frame)))
             ids = sh.ids.astype(np.uint32)
             rgb = np.array([self._rgb.get(int(i), 0.0) for i in sh.ids], np.float32)
             cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb,
@@ -577,9 +586,9 @@ class ReconstructorProcessor(Processor):
             if K is not None and self.params.publish_depth:
                 size = self.image_size or _size_from(uv_all)
                 uv = project(X, K)                      # the published cloud, as imaged
-                depth = depth_image(uv, X[:, 2], size)
                 out.append((TOPICS['nrsfm_depth'], IMAGE,
-                            img_io.array_to_image(depth, '32FC1', self.factory, stamp, frame)))
+                            img_io.array_to_image(depth_image(uv, X[:, 2], size), '32FC1',
+                                                  self.factory, stamp, frame)))
         return out
 
     def _visibility(self, index: int, ids: np.ndarray) -> np.ndarray:
@@ -879,23 +888,29 @@ class SceneFlowProcessor(Processor):
 
     def handlers(self) -> dict[str, Handler]:
         return {'camera_info': self.on_camera_info, 'image': self.on_image,
-                'depth': self.on_depth, 'points': self.on_points}
+                'depth': self.on_depth, 'points': self.on_points,
+                'object_pose': self.on_object_pose}
 
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
         self._prev: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque()
         self._times: deque[float] = deque()       # the history's stamps (s)
+        self._stamps: deque[int] = deque()        # ... in ns (their object poses' keys)
         self._weights: tuple[np.ndarray, np.ndarray] | None = None
         self._nb: tuple[np.ndarray, np.ndarray] | None = None   # flow ids, neighbour index
         self._last: tuple[float, float] | None = None   # shrinkage factor, jitter of the last
+        self._poses: dict[int, np.ndarray] = {}   # nrsfm/object_pose rotations by stamp
+        self._held: Any = None      # a cloud waiting for its object pose (at most one)
+        self.ego_motion = {'poses': 0, 'estimated': 0}   # object-frame flows by ego-motion
         self._reset_msf()
 
     def status(self) -> dict[str, str]:
         """nrsfm object frame with shrinkage: the last cloud's shrinkage factor and jitter."""
-        if self._last is None:
-            return {}
-        return {'shrinkage': f'{self._last[0]:.3f}', 'jitter': f'{self._last[1]:.5f}'}
+        out = {f'ego_motion_{k}': str(v) for k, v in self.ego_motion.items() if v}
+        if self._last is not None:
+            out.update(shrinkage=f'{self._last[0]:.3f}', jitter=f'{self._last[1]:.5f}')
+        return out
 
     def _reset_msf(self) -> None:
         self._K: np.ndarray | None = None
@@ -911,8 +926,10 @@ class SceneFlowProcessor(Processor):
             self._prev = None
             self._history.clear()
             self._times.clear()
+            self._stamps.clear()
             self._weights = None
             self._nb = None
+            self._held = None
             self._reset_msf()
 
     # ---------------------------------------------------------------- msf (RGB-D)
@@ -987,21 +1004,73 @@ class SceneFlowProcessor(Processor):
                              frame)
 
     # ---------------------------------------------------------------- nrsfm (clouds)
+    def _uses_poses(self) -> bool:
+        p = self.params
+        return p.method == 'nrsfm' and p.frame == 'object' and p.ego_motion == 'auto'
+
+    def on_object_pose(self, msg: Any) -> list[Output]:
+        """nrsfm/object_pose: the reconstructor's camera of the cloud of the same stamp (kept
+        for the window; a cloud that arrived first and waits for it is processed now)."""
+        if not self._uses_poses():
+            return []
+        T = transform_matrix(msg)
+        if not np.isfinite(T).all():
+            raise MessageError('transform', 'non-finite', 'the object pose must be finite')
+        stamp = stamp_ns(msg.header)
+        self._poses[stamp] = T[:3, :3]
+        for old in sorted(self._poses)[:-4 * max(self.params.window, 2)]:
+            del self._poses[old]
+        held, self._held = self._held, None
+        if held is not None and held[0] > stamp:      # still waiting for its own
+            self._held, held = held, None
+        return [] if held is None else self._cloud_flow(*held)
+
     def on_points(self, msg: Any) -> list[Output]:
+        """A cloud; with ``ego_motion: auto`` while the reconstructor's poses come with its
+        clouds (the last cloud had one), a cloud whose pose has not arrived yet (the two
+        topics are not ordered over DDS) waits for it until a later pose or the next cloud,
+        which then process it with the estimate."""
         if self.params.method != 'nrsfm':
             return []
+        cloud = self._read_cloud(msg)
+        out: list[Output] = []
+        if self._held is not None:              # its pose did not come: estimated
+            held, self._held = self._held, None
+            out += self._cloud_flow(*held)
+        stamp = cloud[0]
+        if self._uses_poses() and self._stamps and self._stamps[-1] in self._poses and \
+                stamp not in self._poses and stamp > max(self._poses):
+            self._held = cloud
+            return out
+        return out + self._cloud_flow(*cloud)
+
+    def flush(self) -> list[Output]:
+        """End of a stream: the cloud still waiting for its pose, with the estimate."""
+        held, self._held = self._held, None
+        return [] if held is None else self._cloud_flow(*held)
+
+    def _window_rotations(self, stamps: list[int]) -> np.ndarray | None:
+        if not self._uses_poses() or any(t not in self._poses for t in stamps):
+            return None
+        return np.stack([self._poses[t] for t in stamps])
+
+    def _read_cloud(self, msg: Any) -> tuple[int, str, np.ndarray, np.ndarray, np.ndarray]:
+        """(stamp, frame, X, ids, visibility) of a checked nrsfm/points cloud (finite points)."""
         X = pc2.read_xyz(msg, skip_nans=False)
         ids = pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0]
         vis = (np.clip(np.nan_to_num(pc2.read_fields(msg, ('visibility',), np.float64)[:, 0]),
                        0.0, 1.0) if 'visibility' in pc2.field_names(msg) else np.ones(ids.size))
         ok = np.isfinite(X).all(axis=1)
         X, ids, vis = X[ok].astype(np.float64), ids[ok].astype(np.int64), vis[ok]
-        stamp = stamp_ns(msg.header)
-        prev = self._prev
         dup = duplicates(ids)
         if dup:
             raise MessageError('track_id', f'{dup} duplicated',
                                'track ids of a cloud must be unique')
+        return stamp_ns(msg.header), str(msg.header.frame_id), X, ids, vis
+
+    def _cloud_flow(self, stamp: int, frame: str, X: np.ndarray, ids: np.ndarray,
+                    vis: np.ndarray) -> list[Output]:
+        prev = self._prev
         p = self.params
         if prev is None or stamp <= prev[0]:
             # first cloud (or time went backwards): zero flow, so every input has an output
@@ -1009,6 +1078,7 @@ class SceneFlowProcessor(Processor):
             pts, out_ids, out_vis = X, ids, np.zeros(ids.size)
             self._history.clear()
             self._times.clear()
+            self._stamps.clear()
             self._weights = None
             self._nb = None
         else:
@@ -1016,13 +1086,19 @@ class SceneFlowProcessor(Processor):
             if p.frame == 'camera':
                 sf = scene_flow(prev[1], prev[2], X, ids, dt, frame='camera')
             else:
-                from .core.sceneflow.nrsfm_flow import (motion_between, object_poses, pair_flow,
-                                                        shrunk)
+                from .core.sceneflow.nrsfm_flow import (known_poses, motion_between,
+                                                        object_poses, pair_flow, shrunk)
                 window = [*self._history, (X, ids)]
-                R, t, self._weights = object_poses(
-                    window, iterations=p.iterations if self._weights is None else
-                    p.warm_iterations, softness=p.softness, prior=self._weights,
-                    return_weights=True, max_points=p.pose_points, assume_checked=True)
+                rot = self._window_rotations([*self._stamps, stamp])
+                if rot is not None:
+                    R, t = known_poses(window, rot, assume_checked=True)
+                    self.ego_motion['poses'] += 1
+                else:
+                    R, t, self._weights = object_poses(
+                        window, iterations=p.iterations if self._weights is None else
+                        p.warm_iterations, softness=p.softness, prior=self._weights,
+                        return_weights=True, max_points=p.pose_points, assume_checked=True)
+                    self.ego_motion['estimated'] += 1
                 sf = pair_flow((prev[1], prev[2]), (X, ids),
                                motion_between(R, t, len(window) - 2, len(window) - 1), dt)
             out_vis = np.minimum(_lookup(prev[2], prev[3], sf.ids), _lookup(ids, vis, sf.ids))
@@ -1034,10 +1110,12 @@ class SceneFlowProcessor(Processor):
         self._prev = (stamp, X, ids, vis)
         self._history.append((X, ids))
         self._times.append(stamp * 1e-9)
+        self._stamps.append(stamp)
         while len(self._history) > max(p.window, 2) - 1:
             self._history.popleft()
             self._times.popleft()
-        return self._outputs(pts, v, out_ids, stamp, str(msg.header.frame_id), out_vis)
+            self._stamps.popleft()
+        return self._outputs(pts, v, out_ids, stamp, frame, out_vis)
 
     def _neighbours(self, sf: Any) -> np.ndarray:
         """The shrinkage's neighbourhoods (nrsfm_flow.neighbour_index), found in the first

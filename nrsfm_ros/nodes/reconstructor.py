@@ -1,5 +1,5 @@
-"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points + nrsfm/depth; mode
-hdmnet: camera/image_raw (+ /compressed) -> the same outputs, frame by frame."""
+"""reconstructor node: nrsfm/tracks (+ camera/camera_info) -> nrsfm/points + nrsfm/depth +
+nrsfm/object_pose (its camera of each cloud, where the solve has cameras); mode hdmnet: camera/image_raw (+ /compressed) -> the same outputs, frame by frame."""
 from __future__ import annotations
 
 import sys
@@ -13,7 +13,8 @@ class ReconstructorNode(ProcessorNode):
     def __init__(self) -> None:
         super().__init__('reconstructor', ReconstructorProcessor,
                          [('points', 'sensor_msgs/msg/PointCloud2'),
-                          ('nrsfm_depth', 'sensor_msgs/msg/Image')])
+                          ('nrsfm_depth', 'sensor_msgs/msg/Image'),
+                          ('object_pose', 'geometry_msgs/msg/TransformStamped')])
         qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('tracks', 'sensor_msgs/msg/PointCloud2', qos)
         self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)

@@ -1,6 +1,7 @@
 """scene_flow node -> scene_flow/points (x, y, z, vx, vy, vz m/s, track_id), scene_flow/markers.
 
-Inputs by ``method``: nrsfm (default): nrsfm/points; msf: camera/image_raw +
+Inputs by ``method``: nrsfm (default): nrsfm/points (+ nrsfm/object_pose, the reconstructor's
+cameras, for the ego-motion); msf: camera/image_raw +
 camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info, paired by stamp."""
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ class SceneFlowNode(ProcessorNode):
             self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
         else:
             self.subscribe('points', 'sensor_msgs/msg/PointCloud2', RELIABLE)
+            self.subscribe('object_pose', 'geometry_msgs/msg/TransformStamped', RELIABLE)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -78,6 +78,8 @@ DECISION_TRACKS = 2000    # auto decides bmm against rigid on at most this many 
 #   the ratio on 2000 of ~5k ground-truth tracks of the 256x192 renders is within 3% of the
 #   full one (face 30 deg 0.338 / 0.341, 0.699 / 0.691 occluded, 60 deg 0.585 / 0.585; cap
 #   0.561 / 0.550, 0.694 / 0.693; flag 0.898 / 0.901; sheet 0.302 / 0.298) at 2-3x less time
+DEPTH_RATIO_RANGE = (0.25, 4.0)   # a frame's depth over the stream's reference (_gauge)
+RATE_FRAMES = 4           # a new batch continues the camera's turn over this many frames
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
@@ -88,13 +90,23 @@ DISTINCT_MIN = 1e-3       # first shape (its deformation range), at least DISTIN
 class StreamShape:
     """One frame's reconstruction: ``X`` (n, 3) camera frame, image units (x, y centred pixel
     coordinates of the frame, z depth relative to the frame's centroid, towards the scene),
-    ``t`` (2,) the image position of the centroid, for the tracks ``ids`` (n,)."""
+    ``t`` (2,) the image position of the centroid, for the tracks ``ids`` (n,).
+
+    ``R`` (3, 3): the rotation object -> this camera (``X ~ R Y`` for the object-frame shape
+    ``Y``, proper) in the stream's one object frame (the first frame's camera axes, carried
+    across solves: :meth:`StreamNRSfM._gauge`), None where the frame's solve has no cameras
+    (a flat fallback, the per-frame dspr / spva / online steps).  ``depth_ratio``: the
+    centroid's depth over the stream's reference depth (the inverse of the frame's
+    weak-perspective scale, in the same carried gauge): a camera closer to the surface sees it
+    larger, and the metric cloud is then nearer, not larger (``processing.to_metric``)."""
 
     index: int
     ids: np.ndarray
     X: np.ndarray
     t: np.ndarray
     residual_px: float
+    R: np.ndarray | None = None
+    depth_ratio: float | None = None
 
 
 @dataclass
@@ -488,6 +500,7 @@ class StreamNRSfM:
         if self._published:
             self._flip = self._reflection(frames, ids, X_all)
             X_all = X_all * self._flip
+        R_all, ratio = self._gauge(frames, res)
         shapes = []
         for fr in list(wanted):
             if fr.index not in pos:         # left the buffer unsolved: its tracks, flat
@@ -496,9 +509,66 @@ class StreamNRSfM:
                 continue
             i = pos[fr.index]
             col, have = _lookup(ids, fr.ids)
-            shapes.append(self._publish(StreamShape(fr.index, fr.ids[have], X_all[i, col[have]],
-                                                    res.t[i], res.residual_px)))
+            shapes.append(self._publish(StreamShape(
+                fr.index, fr.ids[have], X_all[i, col[have]], res.t[i], res.residual_px,
+                None if R_all is None else R_all[i], float(ratio[i]))))
         return shapes
+
+    def _gauge(self, frames: list[_Frame], res: NRSfMResult
+               ) -> tuple[np.ndarray | None, np.ndarray]:
+        """The solve's cameras as proper rotations object -> camera and its frames' depth
+        ratios (1 / scale), both carried into the stream's gauge: each solve has an object frame
+        and a scale of its own, so they are aligned to the published frames they share with
+        it (window solves overlap), else the first frame is taken to continue the last
+        published ones at their last rate of turn and of depth change (a new batch: the camera
+        moves smoothly); the stream's
+        first solve puts its first camera at the identity and its mean depth ratio at 1.
+        Rotations None for a solve without cameras (``flat``); a ratio outside
+        ``DEPTH_RATIO_RANGE`` of the carried gauge is clipped (a degenerate scale)."""
+        with np.errstate(divide='ignore', invalid='ignore'):
+            r = 1.0 / np.asarray(res.scale, np.float64)
+        good = np.isfinite(r) & (r > 0)
+        r = np.where(good, r, np.median(r[good]) if good.any() else 1.0)
+        Q = None
+        if res.method != 'flat' and np.isfinite(res.R).all():
+            Q = np.array(res.R, np.float64) * self._flip[:, None]     # diag(flip) R_f
+            Q[:, :, 2] *= np.sign(np.linalg.det(Q))[:, None]          # proper: Q_f diag(1,1,d)
+        pos = {f.index: i for i, f in enumerate(frames)}
+        shared = [(pos[sh.index], sh) for sh in self._published if sh.index in pos]
+        last = self._published[-1] if self._published else None
+        turn, change = self._rate()
+        if shared:
+            k = float(np.median([sh.depth_ratio / r[i] for i, sh in shared
+                                 if sh.depth_ratio is not None] or [1.0]))
+        elif last is not None and last.depth_ratio is not None:
+            k = last.depth_ratio * change / r[0]   # continues the last ones at their rate
+        else:
+            k = 1.0 / float(np.mean(r))
+        ratio = np.clip(k * r, *DEPTH_RATIO_RANGE)
+        if Q is None:
+            return None, ratio
+        pairs = [(Q[i], sh.R) for i, sh in shared if sh.R is not None]
+        if not pairs and last is not None and last.R is not None:
+            pairs = [(Q[0], turn @ last.R)]
+        if pairs:           # G = argmin sum |Q_i G - R_pub|: the polar factor of sum Q_i^T R
+            U, _, Vt = np.linalg.svd(sum(q.T @ p for q, p in pairs))
+            G = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        else:
+            G = Q[0].T
+        return Q @ G, ratio
+
+    def _rate(self) -> tuple[np.ndarray, float]:
+        """The published cameras' turn and depth-ratio change per frame, averaged over the last
+        ``RATE_FRAMES`` frames (identity and 1 where fewer or without cameras)."""
+        pub = [sh for sh in list(self._published)[-RATE_FRAMES - 1:]
+               if sh.R is not None and sh.depth_ratio is not None]
+        if len(pub) < 2 or pub[-1].index == pub[0].index:
+            return np.eye(3), 1.0
+        from scipy.spatial.transform import Rotation
+        n = pub[-1].index - pub[0].index
+        turn = Rotation.from_rotvec(Rotation.from_matrix(pub[-1].R @ pub[0].R.T).as_rotvec() / n)
+        assert pub[0].depth_ratio and pub[-1].depth_ratio
+        return turn.as_matrix(), float((pub[-1].depth_ratio / pub[0].depth_ratio) ** (1.0 / n))
 
     def _reflection(self, frames: list[_Frame], ids: np.ndarray, X_all: np.ndarray
                     ) -> np.ndarray:
@@ -527,6 +597,9 @@ class StreamNRSfM:
         return np.array([1.0, 1.0, -1.0 if score < 0 else 1.0])
 
     def _publish(self, shape: StreamShape) -> StreamShape:
+        if shape.depth_ratio is None:       # a step without a scale keeps the last depth
+            last = self._published[-1].depth_ratio if self._published else None
+            shape = replace(shape, depth_ratio=1.0 if last is None else last)
         self._pending = [f for f in self._pending if f.index != shape.index]
         self._published.append(shape)
         return shape
