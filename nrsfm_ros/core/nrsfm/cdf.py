@@ -37,14 +37,26 @@ from .result import NRSfMResult, check_tracks
 def field_fit(Phi: np.ndarray, D: np.ndarray, visible: np.ndarray, lam: float) -> np.ndarray:
     """Per-frame ridge coefficients C (F, L, k) of the fields D (F, P, k) in the features Phi
     (P, L), using the points with ``visible`` (F, P) only."""
+    F, P, k = D.shape
     L = Phi.shape[1]
-    G0 = Phi.T @ Phi + lam * np.eye(L)
-    out = np.empty((D.shape[0], L, D.shape[2]))
-    for f in range(D.shape[0]):
-        vis = visible[f]
-        G = G0 if vis.all() else G0 - Phi[~vis].T @ Phi[~vis]
-        out[f] = np.linalg.solve(G, Phi[vis].T @ D[f][vis])
-    return out
+    # every frame's right-hand side in one product (hidden entries zeroed), and each frame's
+    # Gram from the whole one less its hidden points' (few, as a rule) or from its visible
+    # ones: no (P, L) copy of the features per frame (they were 0.4 s of 0.5 at 60 x 10k)
+    Dv = np.where(visible[..., None], D, 0.0)
+    rhs = (Phi.T @ Dv.transpose(1, 0, 2).reshape(P, F * k)).reshape(L, F, k).transpose(1, 0, 2)
+    G = np.empty((F, L, L))
+    G0 = Phi.T @ Phi
+    for f in range(F):
+        hid = ~visible[f]
+        n = int(hid.sum())
+        if n == 0:
+            G[f] = G0
+        elif n < P // 2:
+            G[f] = G0 - Phi[hid].T @ Phi[hid]
+        else:
+            G[f] = Phi[~hid].T @ Phi[~hid]
+    G += lam * np.eye(L)
+    return np.linalg.solve(G, rhs)
 
 
 def _features(ref: np.ndarray, beta: float, landmarks: int, seed: int) -> np.ndarray:

@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ._planar_kernels import final_passes
 from .extend import spread_subset
 from .perspective import check_intrinsics
 from .result import NRSfMResult
@@ -263,14 +264,10 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     R, T, Cf, Bp, rest_sub = _fit(rays[:, idx], w0[:, idx], R, T, rest[idx], h[:, idx],
                                   rounds, rank, robust)
     if idx.size < P:                  # every track from the subset's poses and C
-        w = w0
-        ridge = 1e-9
-        for k in range(FINAL_PASSES):
-            if robust > 0 and k > 0:
-                w = _cauchy(_posed(rest, h), R, T, m, w0, robust)
-            gg, ga = _height_terms(rays, R, T, rest, w)
-            h = Cf @ _solve_B(gg, ga, Cf, ridge * float(gg.sum()) / max(float(w.sum()), 1.0))
-            rest = _solve_rest(rays, R, T, h, w, rest)
+        rest, hT = final_passes(np.ascontiguousarray(rays.transpose(1, 0, 2)),
+                                np.ascontiguousarray(w0.T), R, T, np.ascontiguousarray(Cf),
+                                rest, np.ascontiguousarray(h.T), robust, FINAL_PASSES, 1e-9)
+        h = hT.T
     else:
         rest, h = rest_sub, Cf @ Bp
     Xr = _posed(rest, h) @ R.transpose(0, 2, 1) + T[:, None]
