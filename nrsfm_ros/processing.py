@@ -429,7 +429,8 @@ class ReconstructorProcessor(Processor):
         self._apply_intrinsics()
         self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
         self._vis: dict[int, tuple[np.ndarray, np.ndarray]] = {}      # track ids, visibility
-        self._rgb: dict[int, float] = {}
+        # each track's first colour: ids sorted, packed rgb floats
+        self._rgb = (np.zeros(0, np.int64), np.zeros(0, np.float32))
 
     def set_params(self, params: ReconstructorParams) -> None:
         self.params = params
@@ -553,8 +554,7 @@ class ReconstructorProcessor(Processor):
         index = self.stream.frames_seen
         self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
         self._vis[index] = (ids.copy(), vis)
-        for i, c in zip(ids.tolist(), rgb.tolist()):   # a track keeps its first colour
-            self._rgb.setdefault(i, c)
+        self._keep_colours(ids.astype(np.int64), rgb)
         return self._emit(self.stream.push(ids, uv, vis))
 
     def _emit(self, shapes: list[StreamShape]) -> list[Output]:
@@ -577,7 +577,7 @@ class ReconstructorProcessor(Processor):
                             transform_msg(self.factory, T, stamp, frame,
                                           self.params.object_frame)))
             ids = sh.ids.astype(np.uint32)
-            rgb = np.array([self._rgb.get(int(i), 0.0) for i in sh.ids], np.float32)
+            rgb = self._colours(sh.ids)
             cloud = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2], 'rgb': rgb,
                                 'track_id': ids,
                                 'visibility': self._visibility(sh.index, ids)},
@@ -589,6 +589,27 @@ class ReconstructorProcessor(Processor):
                 out.append((TOPICS['nrsfm_depth'], IMAGE,
                             img_io.array_to_image(depth_image(uv, X[:, 2], size), '32FC1',
                                                   self.factory, stamp, frame)))
+        return out
+
+    def _keep_colours(self, ids: np.ndarray, rgb: np.ndarray) -> None:
+        """A track keeps its first colour: the ids not seen before join the table."""
+        known, values = self._rgb
+        pos = np.searchsorted(known, ids).clip(max=max(known.size - 1, 0))
+        new = ~(known[pos] == ids) if known.size else np.ones(ids.size, bool)
+        if new.any():
+            all_ids = np.concatenate([known, ids[new]])
+            order = np.argsort(all_ids, kind='stable')
+            self._rgb = (all_ids[order], np.concatenate([values, rgb[new]])[order])
+
+    def _colours(self, ids: np.ndarray) -> np.ndarray:
+        """The packed colours of ``ids`` (0 for a track never seen)."""
+        known, values = self._rgb
+        out = np.zeros(ids.size, np.float32)
+        if known.size:
+            ids = np.asarray(ids, np.int64)
+            pos = np.searchsorted(known, ids).clip(max=known.size - 1)
+            hit = known[pos] == ids
+            out[hit] = values[pos[hit]]
         return out
 
     def _visibility(self, index: int, ids: np.ndarray) -> np.ndarray:

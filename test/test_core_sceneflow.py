@@ -577,3 +577,36 @@ def test_reconstructor_publishes_its_cameras_before_each_cloud():
     size = np.linalg.norm(Y[0] - Y[0].mean(0), axis=1).mean()
     drift = max(np.linalg.norm(y - Y[0], axis=1).mean() for y in Y) / size
     assert drift < 0.03, drift
+
+
+def test_reconstructor_gives_each_track_its_first_colour():
+    """nrsfm/points' rgb: each track's colour from the first tracks message that had it (a
+    track's later colours, e.g. under changing light, and the order of ids do not change it)."""
+    from nrsfm_ros.io.synth import dense_tracks
+    from nrsfm_ros.params import ReconstructorParams
+    from nrsfm_ros.processing import ReconstructorProcessor
+    d = dense_tracks('flag', frames=6, points=120)
+    fac = RosbagsFactory()
+    rec = ReconstructorProcessor(fac, ReconstructorParams(mode='window', window=3))
+    rng = np.random.default_rng(3)
+    first = {}
+    out = []
+    for f in range(6):
+        ids = np.arange(120, dtype=np.uint32) if f < 3 else np.arange(20, 140, dtype=np.uint32)
+        order = rng.permutation(ids.size)
+        ids = ids[order]
+        rgb = rng.random(ids.size).astype(np.float32) + f      # a new colour every frame
+        for i, c in zip(ids.tolist(), rgb.tolist()):
+            first.setdefault(i, c)
+        uv = d['W'][2 * f:2 * f + 2, np.minimum(ids, 119)].T.astype(np.float32)
+        msg = pc2.to_msg({'u': uv[:, 0], 'v': uv[:, 1], 'track_id': ids,
+                          'visibility': np.ones(ids.size, np.float32), 'rgb': rgb}, fac,
+                         int(1e9 + f * 1e8), 'camera')
+        out += rec.handle('tracks', msg)
+    out += rec.flush()
+    clouds = [m for t, _, m in out if t == 'nrsfm/points']
+    assert len(clouds) == 6
+    for m in clouds:
+        got = pc2.read_fields(m, ('track_id', 'rgb'), np.float64)
+        want = np.array([first[int(i)] for i in got[:, 0]], np.float32)
+        np.testing.assert_array_equal(got[:, 1].astype(np.float32), want)
