@@ -543,16 +543,17 @@ def test_node_estimates_where_a_pose_never_comes_and_when_told():
     assert len(flows) == 6
 
 
-def test_reconstructor_publishes_its_cameras_before_each_cloud():
+@pytest.mark.parametrize('mode', ['batch', 'dspr'])
+def test_reconstructor_publishes_its_cameras_before_each_cloud(mode):
     """nrsfm/object_pose comes before the cloud of the same stamp; in it the cloud's points
     R^T (X - t) are one rigid object-frame shape in every frame (a rigid face; three batches,
-    so across the new batches' gauges too)."""
+    so across the new batches' gauges too; dspr: one batch, then the prior's per-frame steps)."""
     from nrsfm_ros.io.synth import dense_tracks
     from nrsfm_ros.params import ReconstructorParams
     from nrsfm_ros.processing import ReconstructorProcessor, transform_matrix
     d = dense_tracks('face', frames=24, points=300, camera_motion_deg=30, amplitude=0.0)
     fac = RosbagsFactory()
-    rec = ReconstructorProcessor(fac, ReconstructorParams(mode='batch', batch_frames=8,
+    rec = ReconstructorProcessor(fac, ReconstructorParams(mode=mode, batch_frames=8,
                                                           method='rigid',
                                                           focal_length_px=2000.0))
     out = []

@@ -94,8 +94,9 @@ class StreamShape:
 
     ``R`` (3, 3): the rotation object -> this camera (``X ~ R Y`` for the object-frame shape
     ``Y``, proper) in the stream's one object frame (the first frame's camera axes, carried
-    across solves: :meth:`StreamNRSfM._gauge`), None where the frame's solve has no cameras
-    (a flat fallback, the per-frame dspr / spva / online steps).  ``depth_ratio``: the
+    across solves: :meth:`StreamNRSfM._gauge`; the per-frame dspr / spva steps' cameras in
+    their prior's, the first batch's), None where the frame's solve has no cameras (a flat
+    fallback, the online steps).  ``depth_ratio``: the
     centroid's depth over the stream's reference depth (the inverse of the frame's
     weak-perspective scale, in the same carried gauge): a camera closer to the surface sees it
     larger, and the metric cloud is then nearer, not larger (``processing.to_metric``)."""
@@ -281,6 +282,8 @@ class StreamNRSfM:
         self._batch_perspective = False               # the last batch solve was perspective
         self._prior_perspective = False               # spva's prior from a perspective batch
         self._prior_ids = np.empty(0, np.int64)
+        self._last_G: np.ndarray | None = None        # the last solve's gauge rotation
+        self._prior_G: np.ndarray | None = None       # dspr / spva: the prior's batch's
         self._new_ids: set[int] = set()
         self.dspr_seconds: list[float] = []           # dspr: per-frame solve time after the prior
 
@@ -328,6 +331,7 @@ class StreamNRSfM:
             out = self._solve_batch(list(self._pending), self.mode == 'spva')
             if self.mode == 'dspr':
                 self._build_prior()
+                self._prior_G = self._last_G if self.prior is not None else None
             return out
         if self.mode == 'online' and self._basis is not None:
             if self._new_fraction(fr) <= REBASE_FRACTION:
@@ -397,6 +401,8 @@ class StreamNRSfM:
         if spva and res.method != 'flat':
             res = self._spva_prior(ids, W, V, res)
         out = self._emit(frames, ids, res, list(self._pending))
+        if spva and self.prior is not None and self._prior_G is None:
+            self._prior_G = self._last_G    # the prior's object frame is this batch's
         self._batch_last = (ids, res, self._flip)
         return out
 
@@ -546,6 +552,7 @@ class StreamNRSfM:
             k = 1.0 / float(np.mean(r))
         ratio = np.clip(k * r, *DEPTH_RATIO_RANGE)
         if Q is None:
+            self._last_G = None
             return None, ratio
         pairs = [(Q[i], sh.R) for i, sh in shared if sh.R is not None]
         if not pairs and last is not None and last.R is not None:
@@ -555,6 +562,7 @@ class StreamNRSfM:
             G = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
         else:
             G = Q[0].T
+        self._last_G = G
         return Q @ G, ratio
 
     def _rate(self) -> tuple[np.ndarray, float]:
@@ -693,7 +701,13 @@ class StreamNRSfM:
                 d, j = d.reshape(-1, k), j.reshape(-1, k)
                 w = 1.0 / np.maximum(d, 1e-6)
                 X[new, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
-        return StreamShape(fr.index, fr.ids, X, out.t, out.residual_px)
+        # the step's camera is in the prior's object frame, the first batch's (published with
+        # no reflection: the stream's first solve): into the stream's by that batch's gauge
+        R = None
+        if self._prior_G is not None and np.isfinite(out.R).all() and \
+                np.linalg.det(out.R) > 0:
+            R = out.R @ self._prior_G
+        return StreamShape(fr.index, fr.ids, X, out.t, out.residual_px, R)
 
     # ------------------------------------------------------------------ online
     def _init_basis(self, ids: np.ndarray, res: NRSfMResult) -> None:
