@@ -152,9 +152,28 @@ def _fit(states: np.ndarray, uv: np.ndarray, v: np.ndarray) -> StateFit:
                     residual_px=np.sqrt(res / Vs))
 
 
+_FLIP = np.diag([1.0, 1.0, -1.0])
 PINHOLE_STEPS = 5             # Gauss-Newton steps of each state's pinhole pose
 PINHOLE_TRACKS = 1000         # ... on at most this many tracks spread over the visible ones
 #   (then the residual on all): 9.4k tracks, 5 states, 24 -> 13 ms per frame
+
+
+def _pinhole_sign(X: np.ndarray, R2: np.ndarray, v: np.ndarray, depth: np.ndarray
+                  ) -> np.ndarray:
+    """The orthographic camera rows R2 (2, 3) of the object-frame shape X (P, 3), or those of
+    its Necker partner D R H (D the camera's depth reflection, H the reflection about X's best
+    plane: the same image for a planar X, the depths mirrored), whichever gives camera-frame
+    depths that agree with ``depth`` (P,), the pinhole-posed best state's: a near-planar shape's
+    orthographic fit leaves the sign to chance (a third of the flag's per-frame steps came out
+    with their depths reflected)."""
+    R = np.concatenate([R2, np.cross(R2[0], R2[1])[None]])
+    c = v @ X / v.sum()
+    z = (X - c) @ R[2]
+    zp = depth - v @ depth / v.sum()
+    if float((v * z) @ zp) >= 0:
+        return R2
+    n = np.linalg.svd((X - c) * np.sqrt(v)[:, None], full_matrices=False)[2][2]
+    return (_FLIP @ R @ (np.eye(3) - 2.0 * np.outer(n, n)))[:2]
 
 
 @dataclass(frozen=True)
@@ -330,6 +349,7 @@ class DynamicShapePrior:
             pin = fit_states_pinhole(states, uv, v, focal, principal, fit)
             best = int(np.argmin(pin.residual_px))
             X = states[best] / focal @ pin.R[best].T + pin.T[best]
+            pose_depth = X[:, 2]
             if pin.residual_px[best] <= self.recurrence_px:
                 self.recurrences += 1
                 Xc, sc, tc = stream_convention(X[None], v[None], focal, principal)
@@ -352,6 +372,8 @@ class DynamicShapePrior:
                                float(fit.residual_px[best]), t0)
         order = np.argsort(fit.residual_px)[:self.blend]
         X, R2, s, t, resid, _ = self._refine(uv, v, best, order, fit)
+        if camera is not None and np.isfinite(pin.residual_px).any():
+            R2 = _pinhole_sign(X, R2, v, pose_depth)
         if self._norms is None or self._norms.size != states.shape[0]:
             self._norms = np.einsum('kpi,kpi->k', states, states)
         d = shape_distance(X, states, centred=True, norms=self._norms)
