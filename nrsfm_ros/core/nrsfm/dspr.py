@@ -188,11 +188,15 @@ class PinholeFit:
 
 
 def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal: float,
-                       principal: np.ndarray, start: StateFit) -> PinholeFit:
+                       principal: np.ndarray, start: StateFit, mirror: bool = False
+                       ) -> PinholeFit:
     """Every state (K, P, 3; image units of a frame whose centroid is at depth 1) posed by the
     pinhole camera on the raw tracks uv (P, 2), weights v (P,): ``PINHOLE_STEPS`` Gauss-Newton
     steps from the orthographic fit ``start`` (the camera rows, the scale as the inverse
-    centroid depth, the image position of the weighted centroid)."""
+    centroid depth, the image position of the weighted centroid).  ``mirror``: the best state
+    also from its orthographic fit's Necker partner (D R H: the camera's depth reflection, H
+    the reflection about the state's best plane), the lower residual kept: Gauss-Newton stays
+    on the side it starts from."""
     K, P, _ = states.shape
     O = states / focal
     R = np.concatenate([start.R2, np.cross(start.R2[:, 0], start.R2[:, 1])[:, None]], 1)
@@ -205,12 +209,32 @@ def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal:
     sub = seen[spread_subset(seen.size, PINHOLE_TRACKS)]
     R, T = pose_steps(O[:, sub], m[:, sub], np.broadcast_to(v[sub], (K, sub.size)), R, T,
                       PINHOLE_STEPS)
+    resid = _pinhole_residual(O, R, T, m[0], v, focal)
+    if mirror:
+        k = int(np.argmin(resid))
+        Ok = O[k] - c[k]
+        n = np.linalg.svd(Ok - Ok.mean(0), full_matrices=False)[2][2]
+        R0 = np.concatenate([start.R2[k], np.cross(start.R2[k, 0], start.R2[k, 1])[None]])
+        Rm = _FLIP @ R0 @ (np.eye(3) - 2.0 * np.outer(n, n))
+        Tm = np.concatenate([(start.t[k] - principal) / focal * depth[k], [depth[k]]]) - Rm @ c[k]
+        Rm, Tm = pose_steps(O[k:k + 1, sub], m[:1, sub], v[sub][None], Rm[None], Tm[None],
+                            PINHOLE_STEPS)
+        rm = _pinhole_residual(O[k:k + 1], Rm, Tm, m[0], v, focal)
+        if rm[0] < resid[k]:
+            R, T, resid = R.copy(), T.copy(), resid.copy()
+            R[k], T[k], resid[k] = Rm[0], Tm[0], rm[0]
+    return PinholeFit(R=R, T=T, residual_px=resid)
+
+
+def _pinhole_residual(O: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray,
+                      v: np.ndarray, focal: float) -> np.ndarray:
+    """(K,) weighted RMS pixel error of the posed states (inf where a point is behind)."""
     X = O @ R.transpose(0, 2, 1) + T[:, None]
     z = X[..., 2]
     front = (z > 0).all(axis=1)
     e2 = ((X[..., :2] / np.where(z > 0, z, 1.0)[..., None] - m) ** 2).sum(2) * focal ** 2
     resid = np.sqrt((e2 * v).sum(1) / v.sum())
-    return PinholeFit(R=R, T=T, residual_px=np.where(front, resid, np.inf))
+    return np.where(front, resid, np.inf)
 
 
 def shape_distance(X: np.ndarray, states: np.ndarray, centred: bool = False,

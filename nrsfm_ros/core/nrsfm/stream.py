@@ -78,7 +78,10 @@ DECISION_TRACKS = 2000    # auto decides bmm against rigid on at most this many 
 #   the ratio on 2000 of ~5k ground-truth tracks of the 256x192 renders is within 3% of the
 #   full one (face 30 deg 0.338 / 0.341, 0.699 / 0.691 occluded, 60 deg 0.585 / 0.585; cap
 #   0.561 / 0.550, 0.694 / 0.693; flag 0.898 / 0.901; sheet 0.302 / 0.298) at 2-3x less time
+_FLIP = np.diag([1.0, 1.0, -1.0])
 DEPTH_RATIO_RANGE = (0.25, 4.0)   # a frame's depth over the stream's reference (_gauge)
+SIGN_TRACKS = 400         # spva: the steps' depth sign from this many spread tracks (the
+#   flag's and sheet's periodic renders: the same signs as from 1000, 3.5 -> 2.8 ms a frame)
 RATE_FRAMES = 4           # a new batch continues the camera's turn over this many frames
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
@@ -629,7 +632,13 @@ class StreamNRSfM:
             return res
         self.prior, self._prior_ids = prior, ids
         self._prior_perspective = self._batch_perspective
-        return out
+        # each frame in the depth sign of the batch solve it was re-solved from (which the
+        # perspective image chose): the orthographic re-solve of a near-planar frame leaves it
+        # to chance (runs of the flag's and the sheet's batch frames came out reflected)
+        za = res.S[:, :, 2] - res.S[:, :, 2].mean(axis=1, keepdims=True)
+        zb = out.S[:, :, 2] - out.S[:, :, 2].mean(axis=1, keepdims=True)
+        agree = (za * zb * V).sum(axis=1) >= 0
+        return reflect_frames(out, np.where(agree, 1.0, -1.0)) if not agree.all() else out
 
     # ------------------------------------------------------------------ dspr
     def _build_prior(self) -> None:
@@ -701,13 +710,47 @@ class StreamNRSfM:
                 d, j = d.reshape(-1, k), j.reshape(-1, k)
                 w = 1.0 / np.maximum(d, 1e-6)
                 X[new, 2] = (w * X[known[j], 2]).sum(axis=1) / w.sum(axis=1)
+        R = out.R if np.isfinite(out.R).all() and np.linalg.det(out.R) > 0 else None
+        if isinstance(self.prior, ShapePrior) and self.projection == 'perspective' and \
+                self._intrinsics is not None and \
+                self._spva_reflected(fr, have, self.prior.T[col[have]],
+                                     out.X[col[have], 2]):
+            # spva's orthographic step left a near-planar shape's depth sign to chance (the
+            # flag's and the sheet's steps came out reflected in runs): the pinhole camera's
+            X = X * [1.0, 1.0, -1.0]
+            if R is not None:
+                n = np.linalg.svd(out.X_object - out.X_object.mean(0),
+                                  full_matrices=False)[2][2]
+                R = _FLIP @ R @ (np.eye(3) - 2.0 * np.outer(n, n))
         # the step's camera is in the prior's object frame, the first batch's (published with
         # no reflection: the stream's first solve): into the stream's by that batch's gauge
-        R = None
-        if self._prior_G is not None and np.isfinite(out.R).all() and \
-                np.linalg.det(out.R) > 0:
-            R = out.R @ self._prior_G
+        R = None if R is None or self._prior_G is None else R @ self._prior_G
         return StreamShape(fr.index, fr.ids, X, out.t, out.residual_px, R)
+
+    def _spva_reflected(self, fr: _Frame, have: np.ndarray, T: np.ndarray, z: np.ndarray
+                        ) -> bool:
+        """Whether spva's step, camera-frame depths ``z`` on the frame's tracks ``have`` that
+        the prior has, runs against the depths of the prior's template ``T`` (on those tracks)
+        posed by the pinhole camera on the frame's pixels (dspr.fit_states_pinhole, from both
+        Necker poses; the step's own shape posed so did worse: flag 19 -> 36 reflected)."""
+        from .dspr import _fit, fit_states_pinhole
+        from .extend import spread_subset
+        assert self._intrinsics is not None
+        focal, c = self._intrinsics
+        sub = spread_subset(T.shape[0], SIGN_TRACKS)
+        T, z = T[sub], z[sub]
+        uv, vis = fr.uv[have][sub], fr.vis[have][sub]
+        v = np.where(vis >= 0.5, vis, 0.0)
+        ok = np.isfinite(uv).all(axis=1)
+        uv, v = np.where(ok[:, None], uv, 0.0), np.where(ok, v, 0.0)
+        if v.sum() <= 0 or (v > 0).sum() < 4:
+            return False
+        pin = fit_states_pinhole(T[None], uv, v, focal, c, _fit(T[None], uv, v), mirror=True)
+        if not np.isfinite(pin.residual_px[0]):
+            return False
+        depth = (T / focal @ pin.R[0].T)[:, 2]
+        depth = depth - v @ depth / v.sum()
+        return float((v * (z - v @ z / v.sum())) @ depth) < 0
 
     # ------------------------------------------------------------------ online
     def _init_basis(self, ids: np.ndarray, res: NRSfMResult) -> None:
