@@ -258,18 +258,5 @@ def test_steps_take_the_depth_sign_the_pinhole_camera_sees():
     near-planar shape's orthographic energy leaves it to chance; the pinhole-posed best state
     decides).  Measured: 0 of 60 reflected (6 before; through the tracker, 256x192, 120
     frames: 22 -> 1 of 60 on the flag, 10 -> 2 on the sheet)."""
-    seq = generate(SynthConfig(surface='flag', width=128, height=96, frames=90,
-                               camera_motion_deg=30, period_frames=20, stride=3))
-    s = StreamNRSfM(mode='dspr', batch_frames=30, projection='perspective')
-    s.set_intrinsics(float(seq.K[0, 0]), seq.K[:2, 2])
-    out = []
-    for f in range(90):
-        out += s.push(seq.track_ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
-    out += s.flush()
-    assert [sh.index for sh in out] == list(range(90))
-    col = {int(i): k for k, i in enumerate(seq.track_ids)}
-    reflected = 0
-    for sh in out[30:]:
-        g = seq.S[sh.index][[col[int(i)] for i in sh.ids], 2]
-        reflected += float((sh.X[:, 2] - sh.X[:, 2].mean()) @ (g - g.mean())) < 0
-    assert reflected <= 2
+    from tests_helpers import reflected_frames_of_a_periodic_flag
+    assert sum(reflected_frames_of_a_periodic_flag('dspr')[30:]) <= 2

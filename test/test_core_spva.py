@@ -281,21 +281,7 @@ def test_stream_frames_keep_the_depth_sign_the_pinhole_camera_sees():
     the pinhole camera.  Measured: 17 of 90 frames reflected (47 before: the batch's in runs
     too; through the tracker, 256x192, 120 frames: 58 -> 19 on the flag, 76 -> 10 on the
     sheet).  Not all: some phases of the wave still come out reflected in runs."""
-    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
-    from nrsfm_ros.io.synth import SynthConfig, generate
-    seq = generate(SynthConfig(surface='flag', width=128, height=96, frames=90,
-                               camera_motion_deg=30, period_frames=20, stride=3))
-    s = StreamNRSfM(mode='spva', batch_frames=30, projection='perspective')
-    s.set_intrinsics(float(seq.K[0, 0]), seq.K[:2, 2])
-    out = []
-    for f in range(90):
-        out += s.push(seq.track_ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
-    out += s.flush()
-    assert [sh.index for sh in out] == list(range(90))
-    col = {int(i): k for k, i in enumerate(seq.track_ids)}
-    reflected = []
-    for sh in out:
-        g = seq.S[sh.index][[col[int(i)] for i in sh.ids], 2]
-        reflected.append(float((sh.X[:, 2] - sh.X[:, 2].mean()) @ (g - g.mean())) < 0)
+    from tests_helpers import reflected_frames_of_a_periodic_flag
+    reflected = reflected_frames_of_a_periodic_flag('spva')
     assert sum(reflected[:30]) <= 1                # the batch frames (measured 1; 12 before)
     assert sum(reflected) <= 24

@@ -22,3 +22,28 @@ def low_rank_sequence(K: int = 3, F: int = 60, P: int = 300, seed: int = 0
     S = np.einsum('fij,fjp->fpi', R, S_obj)
     W = S[:, :, :2].transpose(0, 2, 1).reshape(2 * F, P) + 5.0
     return W, S, R
+
+
+def reflected_frames_of_a_periodic_flag(mode: str, frames: int = 90, batch: int = 30
+                                        ) -> list[bool]:
+    """The stream in ``mode`` with the camera, on the ground-truth tracks of a rendered
+    periodic flag (128x96, 30 deg sweep, the deformation repeating every 20 frames): for each
+    published frame (all of them, in order), whether its depths run against the truth's (the
+    centred depths anti-correlated on the shared tracks)."""
+    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    seq = generate(SynthConfig(surface='flag', width=128, height=96, frames=frames,
+                               camera_motion_deg=30, period_frames=20, stride=3))
+    s = StreamNRSfM(mode=mode, batch_frames=batch, projection='perspective')
+    s.set_intrinsics(float(seq.K[0, 0]), seq.K[:2, 2])
+    out = []
+    for f in range(frames):
+        out += s.push(seq.track_ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
+    out += s.flush()
+    assert [sh.index for sh in out] == list(range(frames))
+    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    reflected = []
+    for sh in out:
+        g = seq.S[sh.index][[col[int(i)] for i in sh.ids], 2]
+        reflected.append(float((sh.X[:, 2] - sh.X[:, 2].mean()) @ (g - g.mean())) < 0)
+    return reflected
