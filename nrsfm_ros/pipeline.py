@@ -184,6 +184,11 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
                 rec.stats.add_time('flush', time.perf_counter() - tf, time.process_time() - cf)
             for out_topic, out_type, out_msg in flushed:
                 emit(out_topic, out_type, out_msg, 0, writer, 'reconstructor')
+        if 'scene_flow' in procs:       # a cloud still waiting for its object pose
+            sf = procs['scene_flow']
+            assert isinstance(sf, SceneFlowProcessor)
+            for out_topic, out_type, out_msg in sf.flush():
+                emit(out_topic, out_type, out_msg, 0, writer, 'scene_flow')
     if progress:
         sys.stderr.write('\n')
     report.seconds = time.perf_counter() - t0

@@ -37,7 +37,7 @@ from .io.msgtypes import stamp_ns
 from .params import Params
 from .pipeline import (ROUTES, STAGES, ProcessReport, _progress, make_processors, new_report,
                        read_input)
-from .processing import ReconstructorProcessor
+from .processing import ReconstructorProcessor, SceneFlowProcessor
 
 QUEUE_SIZE = 64          # events in flight between two processes
 POLL_S = 0.5             # how often a blocked process checks that the others are alive
@@ -132,6 +132,9 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
                     proc.stats.add_time('flush', time.perf_counter() - tf,
                                         time.process_time() - cf)
                 for ev in outputs_of(flushed, 0):
+                    put(ev)
+            elif isinstance(proc, SceneFlowProcessor):    # a cloud waiting for its pose
+                for ev in outputs_of(proc.flush(), 0):
                     put(ev)
             put(StageDone(stage, {k: t.summary() for k, t in proc.stats.timing.items()},
                           proc.status(), failures, time.process_time() - c0))
