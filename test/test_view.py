@@ -264,6 +264,9 @@ def test_protocol_a_message_per_channel_within_2s(bags):
     assert '/registration/camera_pose' not in expected
     assert _frames_of(first['/ground_truth/camera_pose'][1]) == (fv.WORLD_FRAME,
                                                                  fv.CAMERA_FRAME)
+    # the reconstruction's object frame, a child of the camera's
+    assert expected['/nrsfm/object_pose'] == 'FrameTransform'
+    assert _frames_of(first['/nrsfm/object_pose'][1]) == (fv.CAMERA_FRAME, 'nrsfm_object')
     # a cloud of 64x48 px: thousands of bytes of points, not an empty message
     assert len(first['/nrsfm/points'][1]) > 1000
 

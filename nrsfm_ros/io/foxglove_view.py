@@ -268,6 +268,10 @@ ROUTES: tuple[Route, ...] = (
           fm.FrameTransform, transform_to_frame_transform),
     Route('registration/camera_pose', TRANSFORM, '/registration/camera_pose',
           fm.FrameTransform, transform_to_frame_transform, yields_to=GT_POSE_TOPIC),
+    # the reconstruction's object frame (nrsfm_object) as a child of the camera's: its axes
+    # move with the surface as the reconstructor's cameras see it
+    Route('nrsfm/object_pose', TRANSFORM, '/nrsfm/object_pose', fm.FrameTransform,
+          transform_to_frame_transform),
     Route('tf', 'tf2_msgs/msg/TFMessage', '/tf', fm.FrameTransforms, tf_to_frame_transforms),
 )
 
