@@ -2,7 +2,8 @@
 
 ``process_bags`` runs :func:`~nrsfm_ros.pipeline.process_bag` once per input bag in a
 ``ProcessPoolExecutor`` (workers forked from a clean fork server that imported the pipeline
-once: no forked ROS or parent state, no per-worker imports), writes one output bag per
+and loaded the numba kernels once: no forked ROS or parent state, no per-worker imports or
+kernel loads), writes one output bag per
 input under one folder and returns one combined report.  A bag that fails (not a bag, damaged,
 an exception, even a worker process that dies) is reported with its error line and the others
 go on.  Each worker's native thread pools (OpenBLAS/OpenMP, OpenCV) get one thread by default:
