@@ -172,8 +172,20 @@ def _pinhole_sign(X: np.ndarray, R2: np.ndarray, v: np.ndarray, depth: np.ndarra
     zp = depth - v @ depth / v.sum()
     if float((v * z) @ zp) >= 0:
         return R2
-    n = np.linalg.svd((X - c) * np.sqrt(v)[:, None], full_matrices=False)[2][2]
-    return (_FLIP @ R @ (np.eye(3) - 2.0 * np.outer(n, n)))[:2]
+    return necker_partner(R, X, v)[:2]
+
+
+def necker_partner(R: np.ndarray, X: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """The other pose of a near-planar shape X (P, 3) that an orthographic camera cannot tell
+    from R (3, 3, object -> camera): D R H, D the camera's depth reflection and H the reflection
+    about X's best plane (its least principal axis; ``w`` (P,): point weights), proper; it
+    images a planar X the same with its depths mirrored."""
+    if w is None:
+        A = X - X.mean(axis=0)
+    else:
+        A = (X - w @ X / w.sum()) * np.sqrt(w)[:, None]
+    n = np.linalg.svd(A, full_matrices=False)[2][2]
+    return _FLIP @ R @ (np.eye(3) - 2.0 * np.outer(n, n))
 
 
 @dataclass(frozen=True)
@@ -212,10 +224,8 @@ def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal:
     resid = _pinhole_residual(O, R, T, m[0], v, focal)
     if mirror:
         k = int(np.argmin(resid))
-        Ok = O[k] - c[k]
-        n = np.linalg.svd(Ok - Ok.mean(0), full_matrices=False)[2][2]
         R0 = np.concatenate([start.R2[k], np.cross(start.R2[k, 0], start.R2[k, 1])[None]])
-        Rm = _FLIP @ R0 @ (np.eye(3) - 2.0 * np.outer(n, n))
+        Rm = necker_partner(R0, O[k])
         Tm = np.concatenate([(start.t[k] - principal) / focal * depth[k], [depth[k]]]) - Rm @ c[k]
         Rm, Tm = pose_steps(O[k:k + 1, sub], m[:1, sub], v[sub][None], Rm[None], Tm[None],
                             PINHOLE_STEPS)

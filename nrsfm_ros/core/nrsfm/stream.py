@@ -48,7 +48,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .dspr import DynamicShapePrior, object_shapes, shape_distance
+from .dspr import DynamicShapePrior, necker_partner, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
@@ -78,7 +78,6 @@ DECISION_TRACKS = 2000    # auto decides bmm against rigid on at most this many 
 #   the ratio on 2000 of ~5k ground-truth tracks of the 256x192 renders is within 3% of the
 #   full one (face 30 deg 0.338 / 0.341, 0.699 / 0.691 occluded, 60 deg 0.585 / 0.585; cap
 #   0.561 / 0.550, 0.694 / 0.693; flag 0.898 / 0.901; sheet 0.302 / 0.298) at 2-3x less time
-_FLIP = np.diag([1.0, 1.0, -1.0])
 DEPTH_RATIO_RANGE = (0.25, 4.0)   # a frame's depth over the stream's reference (_gauge)
 SIGN_TRACKS = 400         # spva: the steps' depth sign from this many spread tracks (the
 #   flag's and sheet's periodic renders: the same signs as from 1000, 3.5 -> 2.8 ms a frame)
@@ -719,9 +718,7 @@ class StreamNRSfM:
             # flag's and the sheet's steps came out reflected in runs): the pinhole camera's
             X = X * [1.0, 1.0, -1.0]
             if R is not None:
-                n = np.linalg.svd(out.X_object - out.X_object.mean(0),
-                                  full_matrices=False)[2][2]
-                R = _FLIP @ R @ (np.eye(3) - 2.0 * np.outer(n, n))
+                R = necker_partner(R, out.X_object)
         # the step's camera is in the prior's object frame, the first batch's (published with
         # no reflection: the stream's first solve): into the stream's by that batch's gauge
         R = None if R is None or self._prior_G is None else R @ self._prior_G
