@@ -442,13 +442,15 @@ class ReconstructorProcessor(Processor):
 
     def status(self) -> dict[str, str]:
         """Batch solves won by the perspective model, planar ones of them refined under the
-        pinhole camera (``pinhole_refinements``), batch frames published with their
+        pinhole camera (``pinhole_refinements``), first batches whose depth sign a rigid fit
+        to the pinhole image decided (``pinhole_signs``), batch frames published with their
         depths reflected to agree with the perspective image (``reflected_frames``), the last
         batch solve's method (what ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
         prior; spva: the frames (of the first batch) its shape prior was built from."""
         s = self.stream
         out = {'perspective_solves': str(s.perspective_solves),
                'pinhole_refinements': str(s.pinhole_refinements),
+               'pinhole_signs': str(s.pinhole_signs),
                'reflected_frames': str(s.reflected_frames)}
         if s.last_method:
             out['last_method'] = s.last_method
