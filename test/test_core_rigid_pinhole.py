@@ -112,3 +112,23 @@ def test_stream_publishes_the_breathing_cap_convex_where_the_unfitted_image_did_
     monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.batch_sign',
                         lambda *a, **k: (0.0, 0.0))
     assert (agreement() < 0).all()          # the rule it replaces, for the record
+
+
+def test_stream_asks_the_fits_only_where_the_unfitted_image_is_unclear(monkeypatch):
+    """A rigid cloud at 1.5 m: the unfitted perspective image already tells the reflections
+    apart (mean log error ratio far above ``UNFITTED_CLEAR``), so the stream does not pay for
+    the fits; at 400 m with noise it cannot, and the fits are asked (once, first batch)."""
+    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+    calls = []
+    monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.batch_sign',
+                        lambda *a, **k: calls.append(1) or (0.0, 0.0))
+    for distance, asked in ((1.5, 0), (400.0, 1)):
+        W, V, *_ = scene(distance)
+        W = W + np.random.default_rng(3).normal(0.0, 0.3, W.shape)
+        calls.clear()
+        st = StreamNRSfM(mode='batch', batch_frames=10, method='rigid', projection='perspective')
+        st.set_intrinsics(FOCAL, PRINCIPAL)
+        for f in range(V.shape[0]):
+            st.push(np.arange(V.shape[1]), W[2 * f:2 * f + 2].T, V[f])
+        st.flush()
+        assert len(calls) == asked, distance

@@ -211,6 +211,10 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     return bmm_warm(W, V, extend(trial, idx, W, V), iterations=BMM_ITERATIONS)
 
 
+UNFITTED_CLEAR = 0.05   # _frame_reflections: the unfitted image's evidence (mean log error
+#   ratio per frame) above which the pinhole fits are not asked
+
+
 class StreamNRSfM:
     """``push(ids, uv, visibility)`` -> the shapes that became available; ``flush()`` -> the
     rest.  Shapes come out in frame order, exactly one per pushed frame over the stream."""
@@ -476,20 +480,25 @@ class StreamNRSfM:
         start (:func:`.rigid_pinhole.batch_sign`; a breathing cap imaged unfitted favoured the
         wrong reflection by 0.4%, fitted the right one by 4-7%), the image of the unfitted
         solve deciding only where the fits tie (``pinhole_signs`` counts the fits' decisions).
-        Later solves take the published frames' sign (``_reflection``)."""
+        The fits (~0.5 s a batch) are only asked where the unfitted image is unclear: a mean
+        log error ratio of the two reflections below ``UNFITTED_CLEAR`` per frame (ground-truth
+        tracks of the face and the cap: its wrong choices at 0.002-0.027, the right ones of
+        the face at 0.040-0.22).  Later solves take the published frames' sign
+        (``_reflection``)."""
         if self.projection != 'perspective' or self._intrinsics is None or \
                 res.method == 'flat' or not np.isfinite(res.S).all():
             return res
         per_frame = res.method == 'planar'
+        errors = frame_errors(res, W, V, *self._intrinsics)
         sign = 0.0
-        if not per_frame and not self._published:
+        if not per_frame and not self._published and \
+                abs(np.diff(np.log(np.maximum(errors, 1e-12)), axis=1).mean()) < UNFITTED_CLEAR:
             sign, _ = batch_sign(res, W, V, *self._intrinsics)
             self.pinhole_signs += sign != 0.0
         if sign != 0.0:
             signs = np.full(res.S.shape[0], sign)
         else:
-            signs = frame_reflections(frame_errors(res, W, V, *self._intrinsics),
-                                      per_frame=per_frame)
+            signs = frame_reflections(errors, per_frame=per_frame)
         self.reflected_frames += int((signs < 0).sum())
         return reflect_frames(res, signs) if (signs < 0).any() else res
 
