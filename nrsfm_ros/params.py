@@ -171,6 +171,11 @@ class TrackerParams(Params):
                                    'itself, seeded by the prediction, replaces the residual flow '
                                    'where its local 1 - ZNCC is lower by this much (lost tracks '
                                    'found again on foreshortened views; 0: off)')
+    chain_check_px: float = rule(_MFOF.chain_check_px, _TRK['chain_check_px'],
+                                 'mfof: a track is reported not visible where its position '
+                                 'and its previous one moved by a frame-to-frame flow differ '
+                                 'by more than this (px; catches a flow drifting off a surface '
+                                 'whose occlusion checks still pass; 0: off)')
     predict_offset: bool = rule(_MFOF.predict_offset, None,
                                 'mfof: the data step starts each pixel at its own '
                                 'last position moved by the subspace (off: the smooth subspace '

@@ -247,6 +247,14 @@ class TrackerProcessor(Processor):
         super().__init__(factory, params)
         self.tracker = self._make_tracker()
         self._rgb: np.ndarray | None = None
+        self.chain_rejected = 0     # observations the chained check reported not visible
+
+    def status(self) -> dict[str, str]:
+        """With ``chain_check_px`` > 0 (mfof): the track observations its chained check
+        reported not visible so far (``chain_rejected``)."""
+        if self.params.method == 'mfof' and self.params.chain_check_px > 0:
+            return {'chain_rejected': str(self.chain_rejected)}
+        return {}
 
     def _make_tracker(self) -> ReferenceFlowTracker | MFOFTracker:
         p = self.params
@@ -303,6 +311,7 @@ class TrackerProcessor(Processor):
         if ref is not None and grey.shape != ref.shape:
             self.restart()          # a new image size starts a new reference
         tf = self.tracker.step(grey)
+        self.chain_rejected += getattr(self.tracker, 'chain_rejected', 0)
         ids = self.tracker.ids
         if n > 1:
             tf = replace(tf, uv=n * tf.uv + 0.5 * (n - 1),

@@ -11,6 +11,7 @@ import pytest
 
 from nrsfm_ros.core.tracking import (MFOFConfig, MFOFTracker, ReferenceFlowTracker,
                                      track_sequence)
+from nrsfm_ros.core.tracking.mfof import contrast_normalise as mfof_contrast
 from nrsfm_ros.core.tracking.subspace import fit_basis, fit_coefficients, polynomial_basis
 from nrsfm_ros.io.synth import SynthConfig, generate
 from nrsfm_ros.io.synth_tracks import DeformConfig, generate_deforming
@@ -315,9 +316,55 @@ def test_mfof_rejects_bad_input():
         MFOFConfig(ncc_threshold=0).validate()
     with pytest.raises(ValueError, match='recapture_margin'):
         MFOFConfig(recapture_margin=-0.1).validate()
+    with pytest.raises(ValueError, match='chain_check_px'):
+        MFOFConfig(chain_check_px=-1.0).validate()
     tr = MFOFTracker(MFOFConfig(stride=1, mask='full'))
     tr.step(np.full((40, 50), 100, np.uint8))
     with pytest.raises(ValueError, match='differs from the reference'):
         tr.step(np.zeros((10, 10), np.uint8))
     with pytest.raises(ValueError, match='uint8'):
         tr.step(np.zeros((40, 50), np.float32))
+
+
+def _shifted_texture(frames: int, step: float) -> list[np.ndarray]:
+    """A random texture translated by ``step`` px a frame along x (grey uint8, 96 x 128)."""
+    rng = np.random.default_rng(4)
+    base = cv2.GaussianBlur(rng.uniform(0, 255, (96, 160)).astype(np.float32), (0, 0), 1.5)
+    out = []
+    for f in range(frames):
+        M = np.float32([[1, 0, -f * step], [0, 1, 0]])
+        out.append(np.clip(cv2.warpAffine(base, M, (160, 96))[:, 16:144], 0, 255)
+                   .astype(np.uint8))
+    return out
+
+
+def test_chained_check_flags_tracks_that_leave_the_frame_to_frame_chain():
+    """``chain_check_px``: tracks consistent with the frame-to-frame flow stay as they were;
+    tracks moved 8 px off it are reported not visible (occlusion 1) and the chain carries their
+    chained position on, so they become visible again once back on it.  Off: untouched."""
+    grey = _shifted_texture(4, 1.0)
+    off = MFOFTracker(MFOFConfig(stride=4, mask='full'))
+    on = MFOFTracker(MFOFConfig(stride=4, mask='full', chain_check_px=2.0))
+    for g in grey[:3]:
+        a, b = off.step(g), on.step(g)
+    inner = (a.uv[:, 0] > 8) & (a.uv[:, 0] < 120) & (a.uv[:, 1] > 8) & (a.uv[:, 1] < 88)
+    assert on.chain_rejected <= 0.02 * a.ids.size
+    assert np.array_equal(a.visibility[inner], b.visibility[inner])
+    # frame 3, as the tracker would give it but with every other track 8 px off
+    good = on._step(grey[3])
+    gn = mfof_contrast(grey[3])
+    moved = np.zeros(good.ids.size, bool)
+    moved[::2] = True
+    bad = good.__class__(**{**good.__dict__, 'uv': good.uv + 8.0 * moved[:, None]})
+    saved = on._chain
+    out = on._chain_check(gn, bad)
+    assert (out.visibility[moved & inner] == 0).all() and (out.occlusion[moved & inner] == 1).all()
+    assert np.array_equal(out.visibility[~moved & inner], good.visibility[~moved & inner])
+    # the same frame's true positions against the chain carried on: consistent again
+    on._chain = saved
+    on._chain_check(gn, bad)
+    grey4 = _shifted_texture(5, 1.0)[4]
+    nxt = on._step(grey4)
+    back = on._chain_check(mfof_contrast(grey4), nxt)
+    assert on.chain_rejected <= 0.05 * nxt.ids.size
+    assert (back.visibility[moved & inner] > 0.5).mean() > 0.9

@@ -75,3 +75,20 @@ def test_tracker_processor_downsample_returns_full_image_tracks(seq):
     # the renaming: epoch 1, pixel (x 3, y 2) of a 10 x 8 half image -> (6, 4) of 20 x 16
     assert full_image_ids(np.array([80 + 2 * 10 + 3]), (8, 10), (16, 20), 2)[0] == \
         320 + 4 * 20 + 6
+
+
+def test_tracker_processor_chain_check_reaches_the_tracker_and_diagnostics(seq):
+    """``chain_check_px`` goes from the node's parameters to the MFOF tracker, and the
+    observations it rejected are counted on the processor's status; off: no such key."""
+    from nrsfm_ros.io.image import array_to_image
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    from nrsfm_ros.params import TrackerParams
+    from nrsfm_ros.processing import TrackerProcessor
+    fac = RosbagsFactory()
+    off = TrackerProcessor(fac, TrackerParams())
+    on = TrackerProcessor(fac, TrackerParams(chain_check_px=0.05))   # strict: some rejected
+    assert on.tracker.config.chain_check_px == 0.05 and 'chain_rejected' not in off.status()
+    for f, im in enumerate(seq.images[:6]):
+        for proc in (off, on):
+            proc.handle('image', array_to_image(im, 'rgb8', fac, int(seq.stamps_ns[f]), 'cam'))
+    assert int(on.status()['chain_rejected']) > 0 and off.chain_rejected == 0

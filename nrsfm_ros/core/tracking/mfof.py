@@ -35,7 +35,15 @@ Per incoming frame (streaming, bounded latency):
    robust least squares with a temporal prior (the constant-velocity prediction); the output
    fuses data and subspace per pixel ``(w u + beta (s + o)) / (w + beta)``, where o is the
    pixel's last offset from the subspace, so occluded trajectories are carried by the subspace;
-5. windowed refinement: every ``refine_every`` frames the learned basis is re-estimated over the
+5. chained check (``chain_check_px`` > 0, off by default): each track's position against its
+   previous one moved by a frame-to-frame DIS flow (medium preset); where they differ by more
+   than ``chain_check_px`` the track is reported not visible (occlusion 1) and the chain
+   carries its chained position on, so a track drifting a little every frame is caught once
+   the drift adds up.  The reference-based flow can drift off a surface seen edge-on and half
+   occluded while its FB and ZNCC checks still pass on the surface's own texture (the occluded
+   cap at 60 deg, amplitude 2: 5-20% of the tracks called visible 18-50 px off); the check
+   takes the visible observations' mean error there 4.7 -> 0.5 px (BENCHMARKS, session 21);
+6. windowed refinement: every ``refine_every`` frames the learned basis is re-estimated over the
    last ``window`` frames by weighted alternating least squares on a coarse grid, spatially
    regularised and warm-started (subspace.fit_basis).
 
@@ -52,7 +60,7 @@ get new ids ``epoch * H * W + y * W + x``.  Outputs list carried tracks first, t
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -86,6 +94,7 @@ class MFOFConfig:
     min_std: float = 4.0            # texture mask threshold
     recapture_margin: float = 0.07  # 1 - ZNCC gain for the coarse-to-fine pass to win (0: off)
     predict_offset: bool = True     # the prediction keeps each pixel's offset from the subspace
+    chain_check_px: float = 0.0     # px: not visible where the frame-to-frame chain disagrees
 
     def validate(self) -> None:
         """ValueError naming the first field that ``rules.PARAM_RULES`` rejects (the tracker
@@ -180,6 +189,8 @@ class MFOFTracker:
         self._bwd = cv2.DISOpticalFlow_create(PRESETS[self.config.backward_preset])
         # the recapture pass has its own instance: DIS carries state from one call to the next
         self._rec = cv2.DISOpticalFlow_create(PRESETS[self.config.preset])
+        self._chain_dis = cv2.DISOpticalFlow_create(PRESETS['medium'])
+        self.chain_rejected = 0     # tracks the chained check reported not visible, last frame
         self.epoch = -1
         self.keep_history = False   # track_sequence: record (d, w) of the first reference
         self.history: list[tuple[np.ndarray, ...]] = []
@@ -196,6 +207,7 @@ class MFOFTracker:
         self._basis = self._learned
         self._q: list[np.ndarray] = []
         self._flow: np.ndarray | None = None
+        self._chain: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def reference(self) -> np.ndarray | None:
@@ -322,6 +334,34 @@ class MFOFTracker:
     def step(self, grey: np.ndarray) -> MFOFFrame:
         """Track one grey uint8 frame (H, W)."""
         grey = check_grey(grey, self._ref)
+        frame = self._step(grey)
+        if self.config.chain_check_px > 0:
+            frame = self._chain_check(contrast_normalise(grey), frame)
+        return frame
+
+    def _chain_check(self, grey_n: np.ndarray, frame: MFOFFrame) -> MFOFFrame:
+        """``frame`` with the tracks whose position disagrees with the frame-to-frame chain by
+        more than ``chain_check_px`` reported not visible (see the module notes, step 5)."""
+        ids, uv = frame.ids, frame.uv.astype(np.float64)
+        anchor = uv.copy()
+        self.chain_rejected = 0
+        if self._chain is not None and self._chain[0].shape == grey_n.shape:
+            prev_n, prev_ids, prev_xy = self._chain
+            flow = self._chain_dis.calc(prev_n, grey_n, None)
+            _, ia, ib = np.intersect1d(prev_ids, ids, assume_unique=True, return_indices=True)
+            chained = prev_xy[ia] + sample_bilinear(flow, prev_xy[ia])
+            lost = np.linalg.norm(chained - uv[ib], axis=1) > self.config.chain_check_px
+            if lost.any():
+                j = ib[lost]
+                vis, occ = frame.visibility.copy(), frame.occlusion.copy()
+                vis[j], occ[j] = 0.0, 1.0
+                anchor[j] = chained[lost]
+                frame = replace(frame, visibility=vis, occlusion=occ)
+                self.chain_rejected = int(lost.sum())
+        self._chain = (grey_n, ids.copy(), anchor)
+        return frame
+
+    def _step(self, grey: np.ndarray) -> MFOFFrame:
         self._index += 1
         if self._ref is None:
             return self._new_reference(grey)

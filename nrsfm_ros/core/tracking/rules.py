@@ -65,6 +65,7 @@ PARAM_RULES: dict[str, Rule] = {
     'huber_px': _positive,
     'outlier_px': _non_negative,
     'recapture_margin': _non_negative,
+    'chain_check_px': _non_negative,
     'reselect_fraction': _fraction,
     'collapse_fraction': _fraction,
     'occlusion_threshold': _positive,
