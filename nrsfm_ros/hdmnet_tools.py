@@ -25,6 +25,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument('--lr', type=float, default=None, help='peak learning rate (default 2e-3)')
     p.add_argument('--width', type=int, default=None,
                    help='channels of the first encoder stage (default 24)')
+    p.add_argument('--pool', type=int, default=None,
+                   help='average pooling of the stored 112 px images before the network '
+                   '(default 2: a 56 px network; 1: 112 px, ~4x the compute)')
     p.add_argument('--w-align', type=float, default=None,
                    help='weight of the metric-B loss (per-sample Procrustes + scale; default 0)')
     p.add_argument('--w-iso', type=float, default=None,
@@ -33,6 +36,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help='weight of the contour (silhouette) loss (default 1e-3)')
     p.add_argument('--augment', action='store_true', default=None,
                    help='mirror left-right and permute / scale colours during training')
+    p.add_argument('--wave-fraction', type=float, default=None,
+                   help='share of wave (flag) states among the training states, the rest bent '
+                   'sheets (default 0.5; the test splits keep 0.5)')
     p.add_argument('--threads', type=int, default=None, help='PyTorch threads (default 2)')
     p.add_argument('--max-steps', type=int, default=None,
                    help='stop after this many optimiser steps (default 0: all epochs)')
@@ -51,7 +57,8 @@ def train_command(args: argparse.Namespace, argv: list[str]) -> int:
                         epochs=args.epochs, batch=args.batch, lr=args.lr, width=args.width,
                         threads=args.threads, max_steps=args.max_steps, init=args.init,
                         w_align=args.w_align, w_iso=args.w_iso, w_contour=args.w_contour,
-                        augment=args.augment)
+                        augment=args.augment, wave_fraction=args.wave_fraction,
+                        pool=args.pool)
     meta = T.train(cfg, args.out, command=['nrsfm-ros', *argv],
                    log=lambda s: print(s, flush=True))
     m = meta['metrics']

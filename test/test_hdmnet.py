@@ -195,6 +195,27 @@ def test_cli_reconstruct_image(tmp_path, capsys):
     assert '--fx' in capsys.readouterr().err
 
 
+def test_wave_fraction_sets_the_share_of_flag_states():
+    """``wave_fraction`` draws that share of ``wave`` samples; the even split keeps its
+    original draw (the shipped model's data stays reproducible); out of range is refused."""
+    n = 40
+    fam = {wf: D.make_dataset(D.HDMDataConfig(split='train', samples=n, seed=5, stored=16,
+                                              wave_fraction=wf))['family']
+           for wf in (0.0, 0.5, 0.9, 1.0)}
+    wave = D.FAMILIES.index('wave')
+    assert (fam[0.0] != wave).all() and (fam[1.0] == wave).all()
+    assert 0.25 < (fam[0.5] == wave).mean() < 0.75 < (fam[0.9] == wave).mean()
+    default = D.make_dataset(D.HDMDataConfig(split='train', samples=n, seed=5, stored=16))
+    np.testing.assert_array_equal(default['family'], fam[0.5])
+    np.testing.assert_array_equal(default['images'],
+                                  D.make_dataset(D.HDMDataConfig(split='train', samples=n,
+                                                                 seed=5, stored=16,
+                                                                 wave_fraction=0.5))['images'])
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match='wave_fraction'):
+            D.HDMDataConfig(wave_fraction=bad).validate()
+
+
 def test_training_smoke_few_steps_exports_a_matching_onnx(tmp_path):
     torch = pytest.importorskip('torch')
     from nrsfm_ros.learning import hdmnet_train as T
@@ -225,6 +246,31 @@ def test_training_smoke_few_steps_exports_a_matching_onnx(tmp_path):
     assert T.isometry_loss(bumpy, k) > 20 * T.isometry_loss(g, k) + 1e-9
     sil = T.soft_silhouette(g)[0].numpy()
     assert sil[T.SIL // 2, T.SIL // 2] > 0.9 and sil[0, 0] < 0.05
+
+
+def test_cli_train_hdmnet_pool_and_wave_fraction_reach_the_record(tmp_path, capsys):
+    """``--pool`` and ``--wave-fraction`` reach the training: the record holds them, the
+    training split is all flag states, the test splits keep the even split, and the exported
+    model (a 112 px network) takes the usual 224 px input."""
+    pytest.importorskip('torch')
+    pytest.importorskip('onnx')
+    from nrsfm_ros.cli import main
+    out = tmp_path / 'm'
+    assert main(['train-hdmnet', '--out', str(out), '--states', '8', '--test-states', '2',
+                 '--epochs', '1', '--batch', '4', '--max-steps', '1', '--width', '8',
+                 '--pool', '1', '--wave-fraction', '1.0', '--threads', '1']) == 0
+    meta = json.loads((out / 'hdmnet.json').read_text())
+    assert meta['train_config']['pool'] == 1 and meta['train_config']['wave_fraction'] == 1.0
+    assert meta['data']['train']['wave_fraction'] == 1.0
+    assert meta['data']['test']['wave_fraction'] == 0.5
+    assert meta['command'][-2:] == ['--threads', '1'] and '--pool' in meta['command']
+    x = np.zeros((1, 3, H.INPUT_SIZE, H.INPUT_SIZE), np.float32)
+    assert HDMNetModel(out / 'hdmnet.onnx').raw(x).shape[-3:] == (H.GRID, H.GRID, 3)
+    with pytest.raises(SystemExit):
+        main(['train-hdmnet', '--out', str(out), '--wave-fraction', 'lots'])
+    assert main(['train-hdmnet', '--out', str(out), '--states', '8', '--wave-fraction',
+                 '1.5']) != 0
+    assert 'wave_fraction' in capsys.readouterr().err
 
 
 def test_training_warm_start_from_the_shipped_onnx_and_the_metric_b_loss(tmp_path):

@@ -51,7 +51,8 @@ class HDMDataConfig:
     input is ``core.hdmnet.INPUT_SIZE``; training stores them area-downsampled by ``stored``),
     deformation amplitude up to ``max_amplitude``, camera yaw/pitch up to ``max_yaw_deg`` /
     ``max_pitch_deg``, roll up to ``max_roll_deg``, distance so that the rest sheet spans
-    ``fill`` of the image width."""
+    ``fill`` of the image width; ``wave_fraction``: the share of samples drawn from the
+    ``wave`` family (the rest ``bend``)."""
     split: str = 'train'
     samples: int = 4000
     seed: int = 0
@@ -63,6 +64,7 @@ class HDMDataConfig:
     fill: tuple[float, float] = (0.55, 0.85)
     noise: float = 3.0
     textures_per_family: int = 24
+    wave_fraction: float = 0.5
 
     def validate(self) -> None:
         if self.split not in SPLITS:
@@ -83,6 +85,8 @@ class HDMDataConfig:
             raise ValueError(f'fill={self.fill}: expected 0.2 <= lo <= hi <= 1')
         if not self.noise >= 0:
             raise ValueError(f'noise={self.noise}: expected >= 0')
+        if not 0 <= self.wave_fraction <= 1:
+            raise ValueError(f'wave_fraction={self.wave_fraction}: expected 0..1')
         if self.textures_per_family < 1:
             raise ValueError(f'textures_per_family={self.textures_per_family}: expected >= 1')
 
@@ -281,7 +285,10 @@ def make_dataset(cfg: HDMDataConfig) -> dict[str, np.ndarray]:
            'pose': np.empty((N, 4, 4), np.float32)}
     f0 = H.CANON_FOCAL
     for i in range(N):
-        fam = FAMILIES[int(rng.integers(0, 2))]
+        # the even split keeps its original draw, so that its datasets (and the records of
+        # models trained on them) stay reproducible
+        fam = FAMILIES[int(rng.integers(0, 2)) if cfg.wave_fraction == 0.5
+                       else int(rng.random() < cfg.wave_fraction)]
         amp = float(rng.uniform(0, cfg.max_amplitude)) if fam == 'bend' else \
             float(rng.uniform(0, min(cfg.max_amplitude, 1.5)))
         X = sheet_grid(fam, float(rng.uniform(0, 30)), amp, rng.uniform(0, 2 * np.pi, 3))
