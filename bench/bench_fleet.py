@@ -3,7 +3,9 @@
     .venv/bin/python bench/bench_fleet.py [--bags 4] [--size 128x96] [--frames 20]
                                           [--jobs 1,2] [--repeat 2] [--ray] [--json out.json]
 
-Writes ``--bags`` synthetic bags (flag surface, seeds 0.., in a temporary folder), then runs
+Writes ``--bags`` synthetic bags (flag surface, seeds 0.., in a temporary folder; ``--frames``
+one count for all or a comma list cycled over the bags, e.g. ``20,20,20,60`` for a fleet of
+mixed lengths), then runs
 ``fleet.process_bags`` over all of them (the full four-stage pipeline, default parameters) for
 each ``--jobs`` value, ``--repeat`` times in alternating order so that both settings see the
 same machine load.  Reports wall time (median and every run), frames/s and the ratio to the
@@ -71,7 +73,8 @@ def main() -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--bags', type=int, default=4)
     p.add_argument('--size', default='128x96')
-    p.add_argument('--frames', type=int, default=20)
+    p.add_argument('--frames', default='20',
+                   help='frames per bag: one count, or a comma list cycled over the bags')
     p.add_argument('--jobs', default='1,2')
     p.add_argument('--repeat', type=int, default=2)
     p.add_argument('--threads', type=int, default=None,
@@ -84,6 +87,7 @@ def main() -> int:
     args = p.parse_args()
     w, h = (int(v) for v in args.size.split('x'))
     jobs = [int(j) for j in args.jobs.split(',')]
+    frames = [int(f) for f in str(args.frames).split(',')]
     if args.threads is not None:
         for v in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
             os.environ[v] = str(args.threads)
@@ -93,7 +97,8 @@ def main() -> int:
         for i in range(args.bags):
             bags.append(d / f'bag{i}')
             write_sequence_bag(generate(SynthConfig(surface='flag', width=w, height=h,
-                                                    frames=args.frames, seed=i)), bags[-1])
+                                                    frames=frames[i % len(frames)], seed=i)),
+                               bags[-1])
         settings: list[int | str] = [*jobs, 'ray'] if args.ray else list(jobs)
         runs: dict[int | str, list[dict]] = {j: [] for j in settings}
         with contextlib.ExitStack() as stack:

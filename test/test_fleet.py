@@ -121,6 +121,35 @@ def where_am_i(job: BagJob) -> dict:
             'blas': os.environ.get('OPENBLAS_NUM_THREADS')}
 
 
+def when_started(job: BagJob) -> dict:
+    """A worker that only notes when it took its job (module level: it is pickled)."""
+    import time
+    return {'bag': job.bag, 'out': job.out, 'status': 'ok', 'started_ns': time.monotonic_ns()}
+
+
+def test_largest_bags_are_handed_out_first_report_in_input_order(tmp_path):
+    """Longest-processing-time first: the workers take the bags by size, largest first
+    (ties in input order), and the report lists them in input order."""
+    from nrsfm_ros.fleet import input_bytes, largest_first
+    sizes = {'small': 1000, 'big': 50_000, 'mid': 9000, 'mid2': 9000}
+    paths = []
+    for name, n in sizes.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / 'x.mcap').write_bytes(b'0' * n)
+        (tmp_path / name / 'metadata.yaml').write_bytes(b'1' * 10)
+        paths.append(tmp_path / name)
+    assert input_bytes(tmp_path / 'big') == 50_010
+    assert input_bytes(tmp_path / 'big' / 'x.mcap') == 50_000
+    assert input_bytes(tmp_path / 'nothing') == 0
+    jobs = [BagJob(i, str(p), str(tmp_path / 'out' / p.name), ('tracker',))
+            for i, p in enumerate(paths)]
+    assert [Path(j.bag).name for j in largest_first(jobs)] == ['big', 'mid', 'mid2', 'small']
+    rep = process_bags(paths, tmp_path / 'out', ['tracker'], jobs=1, worker=when_started)
+    assert [Path(b['bag']).name for b in rep.bags] == list(sizes)
+    order = sorted(rep.bags, key=lambda b: b['started_ns'])
+    assert [Path(b['bag']).name for b in order] == ['big', 'mid', 'mid2', 'small']
+
+
 def test_workers_fork_from_a_server_that_imported_the_pipeline(bags, tmp_path, monkeypatch):
     import multiprocessing.forkserver
 
