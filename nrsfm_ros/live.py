@@ -167,11 +167,24 @@ class Graph:
                 time.sleep(0.1)
         except KeyboardInterrupt:
             codes = self.stop(timeout=10.0)     # a node still starting on a loaded machine
-            bad = {n: c for n, c in codes.items()
-                   if n not in due and c not in (0, -signal.SIGINT, 130)}
-            for n, c in bad.items():
-                sys.stderr.write(f'error: node {n} exited with code {c} on Ctrl-C\n')
-            return 1 if bad else 0
+            return 1 if stop_problems(codes, set(due)) else 0
+
+
+def stop_problems(codes: dict[str, int], restarting: set[str] = frozenset()) -> dict[str, int]:
+    """The nodes whose exit codes after Ctrl-C are not a clean stop, each reported on stderr.
+    A clean stop: 0, death by SIGINT (130 from a shell), or -SIGALRM: the node's work was
+    over and its own shutdown alarm cut a hung DDS teardown short (nodes/common.py:
+    ``arm_teardown_alarm``; its stacks are on stderr).  Nodes waiting to be restarted do not
+    count."""
+    for n, c in codes.items():
+        if c == -signal.SIGALRM:
+            sys.stderr.write(f'graph: node {n} stopped; its DDS teardown hung and its '
+                             'shutdown alarm ended it (stacks above)\n')
+    bad = {n: c for n, c in codes.items()
+           if n not in restarting and c not in (0, -signal.SIGINT, 130, -signal.SIGALRM)}
+    for n, c in bad.items():
+        sys.stderr.write(f'error: node {n} exited with code {c} on Ctrl-C\n')
+    return bad
 
 
 # ------------------------------------------------------------------ record / replay

@@ -152,6 +152,58 @@ def test_node_stuck_after_ctrl_c_exits_in_bounded_time_with_its_stacks():
     assert 'most recent call first' in err         # faulthandler's stack of every thread
 
 
+TEARDOWN_HOLDS_GIL = """
+import ctypes, sys
+from rclpy.node import Node
+from nrsfm_ros.nodes import common
+common.SHUTDOWN_GRACE_S = 0.5
+common.ALARM_AFTER_GRACE_S = 1.5
+
+class Stuck(Node):
+    def destroy_node(self):
+        # a C call that never returns and keeps the GIL, as a hung rcl_node_fini does
+        # (PyDLL does not release it): no Python thread can run any more
+        ctypes.PyDLL(None).sleep(3600)
+
+def make():
+    print('ready', flush=True)
+    return Stuck('gil_node')
+
+sys.exit(common.spin_node(make, []))
+"""
+
+
+def test_teardown_hung_holding_the_gil_is_cut_short_by_the_alarm_with_stacks():
+    p = subprocess.Popen([sys.executable, '-c', TEARDOWN_HOLDS_GIL], env=dict(os.environ),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == 'ready'
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        rc = p.wait(20)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = p.stderr.read()
+    assert rc == -signal.SIGALRM, err[-2000:]
+    assert took < 8.0
+    # the Python watchdog could not run; faulthandler's C thread wrote the stacks
+    assert 'still running' not in err
+    assert 'most recent call first' in err and 'destroy_node' in err
+
+
+def test_graph_reads_the_teardown_alarm_as_a_clean_stop(capsys):
+    from nrsfm_ros.live import stop_problems
+    bad = stop_problems({'a': 0, 'b': -signal.SIGALRM, 'c': -signal.SIGINT, 'd': 1, 'e': -9},
+                        restarting={'e'})
+    assert bad == {'d': 1}
+    err = capsys.readouterr().err
+    assert 'node b stopped; its DDS teardown hung' in err
+    assert 'error: node d exited with code 1 on Ctrl-C' in err and 'node e' not in err
+
+
 STUCK_CHILD = """
 import signal, sys, time
 import nrsfm_ros.nodes  # noqa: F401 (a launched node: SIGUSR1 prints its stacks)

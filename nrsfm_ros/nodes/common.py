@@ -283,5 +283,24 @@ def shutdown_watchdog(name: str, code: int = 0, grace_s: float | None = None
         os._exit(code)
     t = threading.Thread(target=expire, name='shutdown-watchdog', daemon=True)
     t.start()
+    arm_teardown_alarm(grace_s + ALARM_AFTER_GRACE_S)
     return t
+
+
+ALARM_AFTER_GRACE_S = 2.0   # the kernel's backstop, after the Python watchdog's grace
+
+
+def arm_teardown_alarm(after_s: float) -> None:
+    """A backstop that needs no Python thread to run.  rclpy's teardown calls into DDS
+    (``rcl_node_fini`` and the participant's deletion) holding the GIL; when one of those
+    calls hangs (rclpy#456, Fast-DDS#235: seen once in CI in ~20 sessions) the watchdog thread
+    above can never wake.  faulthandler's C thread writes every thread's stack to stderr
+    half a second before the alarm; SIGALRM with its default action then ends the process
+    (status -SIGALRM, which the graph launcher reads as "stopped, teardown cut short").  Only
+    from the main thread (signal handlers are set there); elsewhere the watchdog is all."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    faulthandler.dump_traceback_later(max(0.1, after_s - 0.5), exit=False)
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+    signal.setitimer(signal.ITIMER_REAL, after_s)
 
