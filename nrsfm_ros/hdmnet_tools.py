@@ -39,6 +39,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument('--wave-fraction', type=float, default=None,
                    help='share of wave (flag) states among the training states, the rest bent '
                    'sheets (default 0.5; the test splits keep 0.5)')
+    p.add_argument('--max-yaw', type=float, default=None,
+                   help='camera yaw range of the training states, +-degrees (0..60; default '
+                   '35; the test splits keep 35)')
     p.add_argument('--threads', type=int, default=None, help='PyTorch threads (default 2)')
     p.add_argument('--max-steps', type=int, default=None,
                    help='stop after this many optimiser steps (default 0: all epochs)')
@@ -58,7 +61,7 @@ def train_command(args: argparse.Namespace, argv: list[str]) -> int:
                         threads=args.threads, max_steps=args.max_steps, init=args.init,
                         w_align=args.w_align, w_iso=args.w_iso, w_contour=args.w_contour,
                         augment=args.augment, wave_fraction=args.wave_fraction,
-                        pool=args.pool)
+                        pool=args.pool, max_yaw_deg=args.max_yaw)
     meta = T.train(cfg, args.out, command=['nrsfm-ros', *argv],
                    log=lambda s: print(s, flush=True))
     m = meta['metrics']

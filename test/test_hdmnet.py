@@ -249,8 +249,9 @@ def test_training_smoke_few_steps_exports_a_matching_onnx(tmp_path):
 
 
 def test_cli_train_hdmnet_pool_and_wave_fraction_reach_the_record(tmp_path, capsys):
-    """``--pool`` and ``--wave-fraction`` reach the training: the record holds them, the
-    training split is all flag states, the test splits keep the even split, and the exported
+    """``--pool``, ``--wave-fraction`` and ``--max-yaw`` reach the training: the record holds
+    them, the training split is all flag states seen from up to +-60 deg, the test splits keep
+    the even split and +-35 deg, and the exported
     model (a 112 px network) takes the usual 224 px input."""
     pytest.importorskip('torch')
     pytest.importorskip('onnx')
@@ -258,11 +259,15 @@ def test_cli_train_hdmnet_pool_and_wave_fraction_reach_the_record(tmp_path, caps
     out = tmp_path / 'm'
     assert main(['train-hdmnet', '--out', str(out), '--states', '8', '--test-states', '2',
                  '--epochs', '1', '--batch', '4', '--max-steps', '1', '--width', '8',
-                 '--pool', '1', '--wave-fraction', '1.0', '--threads', '1']) == 0
+                 '--pool', '1', '--wave-fraction', '1.0', '--max-yaw', '60',
+                 '--threads', '1']) == 0
     meta = json.loads((out / 'hdmnet.json').read_text())
     assert meta['train_config']['pool'] == 1 and meta['train_config']['wave_fraction'] == 1.0
     assert meta['data']['train']['wave_fraction'] == 1.0
     assert meta['data']['test']['wave_fraction'] == 0.5
+    assert meta['train_config']['max_yaw_deg'] == 60.0
+    assert meta['data']['train']['max_yaw_deg'] == 60.0
+    assert meta['data']['test']['max_yaw_deg'] == 35.0
     assert meta['command'][-2:] == ['--threads', '1'] and '--pool' in meta['command']
     x = np.zeros((1, 3, H.INPUT_SIZE, H.INPUT_SIZE), np.float32)
     assert HDMNetModel(out / 'hdmnet.onnx').raw(x).shape[-3:] == (H.GRID, H.GRID, 3)
@@ -271,6 +276,8 @@ def test_cli_train_hdmnet_pool_and_wave_fraction_reach_the_record(tmp_path, caps
     assert main(['train-hdmnet', '--out', str(out), '--states', '8', '--wave-fraction',
                  '1.5']) != 0
     assert 'wave_fraction' in capsys.readouterr().err
+    assert main(['train-hdmnet', '--out', str(out), '--states', '8', '--max-yaw', '75']) != 0
+    assert 'max_yaw_deg=75' in capsys.readouterr().err
 
 
 def test_training_warm_start_from_the_shipped_onnx_and_the_metric_b_loss(tmp_path):

@@ -56,6 +56,8 @@ class TrainConfig:
     max_steps: int = 0          # stop after this many steps (0: all epochs; smoke tests)
     wave_fraction: float = 0.5  # share of ``wave`` (flag) states in the training split (the
     #                             test splits keep the even split)
+    max_yaw_deg: float = 35.0   # camera yaw range of the training split (the test splits keep
+    #                             the default 35, so the rounds' metrics compare)
     init: str = ''              # warm start: hdmnet.pt of an earlier run, or an exported
     #                             hdmnet.onnx (BatchNorm then frozen); its record is kept
 
@@ -68,6 +70,8 @@ class TrainConfig:
             raise ValueError(f'lr={self.lr}: expected > 0')
         if not 0 <= self.wave_fraction <= 1:
             raise ValueError(f'wave_fraction={self.wave_fraction}: expected 0..1')
+        if not 0 <= self.max_yaw_deg <= 60:
+            raise ValueError(f'max_yaw_deg={self.max_yaw_deg}: expected 0..60')
         if min(self.w_shape, self.w_iso, self.w_contour, self.w_align, self.max_steps) < 0:
             raise ValueError('w_shape, w_iso, w_contour, w_align, max_steps: expected >= 0')
 
@@ -226,7 +230,8 @@ def _to_input(images: np.ndarray) -> torch.Tensor:
 
 def split_configs(cfg: TrainConfig) -> dict[str, D.HDMDataConfig]:
     out = {'train': D.HDMDataConfig(split='train', samples=cfg.states, seed=cfg.seed,
-                                    wave_fraction=cfg.wave_fraction)}
+                                    wave_fraction=cfg.wave_fraction,
+                                    max_yaw_deg=cfg.max_yaw_deg)}
     for s in ('test', 'heldout-texture', 'heldout-light'):
         out[s] = D.HDMDataConfig(split=s, samples=cfg.test_states, seed=cfg.seed)
     return out
