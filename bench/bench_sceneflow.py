@@ -97,17 +97,23 @@ def _node_flows(clouds: dict, stamps: np.ndarray, params=None) -> dict:
     from nrsfm_ros.io.msgtypes import RosbagsFactory
     from nrsfm_ros.params import SceneFlowParams
     from nrsfm_ros.processing import SceneFlowProcessor
+    from nrsfm_ros.io.msgtypes import stamp_ns
     fac = RosbagsFactory()
     proc = SceneFlowProcessor(fac, params or SceneFlowParams())
-    out = {}
+    frame_of = {int(s): f for f, s in enumerate(stamps)}
+    outs = []
     for f in sorted(clouds):
         X, ids = clouds[f]
         X = np.asarray(X, np.float32)
         msg = pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
                           'track_id': np.asarray(ids, np.uint32)}, fac, int(stamps[f]), 'cam')
-        m = proc.on_points(msg)[0][2]
-        out[f] = (pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64),
-                  pc2.read_fields(m, ('track_id',), np.uint32)[:, 0])
+        outs += proc.on_points(msg)
+    out = {}
+    for topic, _, m in outs + proc.flush():       # look-ahead: published later, and at the end
+        if topic.endswith('scene_flow/points'):
+            out[frame_of[stamp_ns(m.header)]] = (
+                pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64),
+                pc2.read_fields(m, ('track_id',), np.uint32)[:, 0])
     return out
 
 

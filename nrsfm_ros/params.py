@@ -397,6 +397,15 @@ class SceneFlowParams(Params):
                           '|d|^2 over its 16 nearest points), sigma the jitter measured over the '
                           'window: pure jitter gives ~zero flow; times the point\'s visibility: '
                           'an occluded fill-in gets none) or none (the raw difference)')
+    lookahead: int = rule(3, _at_least(0), 'nrsfm object frame: clouds of look-ahead L; '
+                          '0: the flow of a cloud from the window ending at it, published at '
+                          'once; L > 0: from a per-track quadratic over the clouds f-1-m .. f+m '
+                          '(centred on the pair; m = L, fewer at a stream\'s ends), published '
+                          'when cloud f+L arrives (at the end of a bag, or live after '
+                          'idle_flush_s without a cloud, with the clouds there are)')
+    idle_flush_s: float = rule(2.0, _non_negative, 'live, nrsfm with lookahead: publish the '
+                               'clouds still waiting for their look-ahead after this long '
+                               'without a cloud (0: never)')
     stride: int = rule(4, _at_least(1), 'msf: publish every stride-th reference pixel')
     segments: int = rule(300, _at_least(1), 'msf: SLIC segments of the reference frame')
     sync_tolerance_s: float = rule(0.005, _non_negative, 'msf: image and depth stamps closer '

@@ -184,7 +184,7 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
                 rec.stats.add_time('flush', time.perf_counter() - tf, time.process_time() - cf)
             for out_topic, out_type, out_msg in flushed:
                 emit(out_topic, out_type, out_msg, 0, writer, 'reconstructor')
-        if 'scene_flow' in procs:       # a cloud still waiting for its object pose
+        if 'scene_flow' in procs:       # clouds still waiting: object pose, look-ahead
             sf = procs['scene_flow']
             assert isinstance(sf, SceneFlowProcessor)
             for out_topic, out_type, out_msg in sf.flush():

@@ -133,7 +133,7 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
                                         time.process_time() - cf)
                 for ev in outputs_of(flushed, 0):
                     put(ev)
-            elif isinstance(proc, SceneFlowProcessor):    # a cloud waiting for its pose
+            elif isinstance(proc, SceneFlowProcessor):    # clouds waiting: pose, look-ahead
                 for ev in outputs_of(proc.flush(), 0):
                     put(ev)
             put(StageDone(stage, {k: t.summary() for k, t in proc.stats.timing.items()},

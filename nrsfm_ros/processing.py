@@ -925,10 +925,10 @@ class SceneFlowProcessor(Processor):
 
     def __init__(self, factory: MsgFactory, params: SceneFlowParams | None = None) -> None:
         super().__init__(factory, params)
-        self._prev: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque()
-        self._times: deque[float] = deque()       # the history's stamps (s)
-        self._stamps: deque[int] = deque()        # ... in ns (their object poses' keys)
+        # the window: (stamp ns, frame, X, ids, visibility) of the last clouds, the newest
+        # ``_waiting`` of them not yet published (look-ahead)
+        self._buf: deque[tuple[int, str, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        self._waiting = 0
         self._weights: tuple[np.ndarray, np.ndarray] | None = None
         self._nb: tuple[np.ndarray, np.ndarray] | None = None   # flow ids, neighbour index
         self._last: tuple[float, float] | None = None   # shrinkage factor, jitter of the last
@@ -955,10 +955,8 @@ class SceneFlowProcessor(Processor):
                       for k in ('method', 'stride', 'segments', 'frame'))
         super().set_params(params)
         if changed:
-            self._prev = None
-            self._history.clear()
-            self._times.clear()
-            self._stamps.clear()
+            self._buf.clear()
+            self._waiting = 0
             self._weights = None
             self._nb = None
             self._held = None
@@ -1050,7 +1048,7 @@ class SceneFlowProcessor(Processor):
             raise MessageError('transform', 'non-finite', 'the object pose must be finite')
         stamp = stamp_ns(msg.header)
         self._poses[stamp] = T[:3, :3]
-        for old in sorted(self._poses)[:-4 * max(self.params.window, 2)]:
+        for old in sorted(self._poses)[:-4 * max(self.params.window, 2 * self._lookahead() + 2)]:
             del self._poses[old]
         held, self._held = self._held, None
         if held is not None and held[0] > stamp:      # still waiting for its own
@@ -1070,16 +1068,19 @@ class SceneFlowProcessor(Processor):
             held, self._held = self._held, None
             out += self._cloud_flow(*held)
         stamp = cloud[0]
-        if self._uses_poses() and self._stamps and self._stamps[-1] in self._poses and \
+        if self._uses_poses() and self._buf and self._buf[-1][0] in self._poses and \
                 stamp not in self._poses and stamp > max(self._poses):
             self._held = cloud
             return out
         return out + self._cloud_flow(*cloud)
 
     def flush(self) -> list[Output]:
-        """End of a stream: the cloud still waiting for its pose, with the estimate."""
+        """End of a stream (or, live, ``idle_flush_s`` without a cloud): the cloud still
+        waiting for its pose, with the estimate, and the clouds still waiting for their
+        look-ahead, with the clouds there are."""
         held, self._held = self._held, None
-        return [] if held is None else self._cloud_flow(*held)
+        out = [] if held is None else self._cloud_flow(*held)
+        return out + self.flush_waiting()
 
     def _window_rotations(self, stamps: list[int]) -> np.ndarray | None:
         if not self._uses_poses() or any(t not in self._poses for t in stamps):
@@ -1102,52 +1103,89 @@ class SceneFlowProcessor(Processor):
 
     def _cloud_flow(self, stamp: int, frame: str, X: np.ndarray, ids: np.ndarray,
                     vis: np.ndarray) -> list[Output]:
-        prev = self._prev
-        p = self.params
-        if prev is None or stamp <= prev[0]:
-            # first cloud (or time went backwards): zero flow, so every input has an output
-            v = np.zeros_like(X)
-            pts, out_ids, out_vis = X, ids, np.zeros(ids.size)
-            self._history.clear()
-            self._times.clear()
-            self._stamps.clear()
+        """A cloud arrives: kept in the window; the flows now due are published (the cloud's
+        own at once, or with ``lookahead`` L in the object frame the one of the cloud L
+        before it)."""
+        cloud = (stamp, frame, X, ids, vis)
+        if not self._buf or stamp <= self._buf[-1][0]:
+            # first cloud (or time went backwards): zero flow, so every input has an output;
+            # clouds still waiting for their look-ahead are published first with what there is
+            out = self.flush_waiting()
+            self._buf.clear()
+            self._buf.append(cloud)
             self._weights = None
             self._nb = None
+            return out + self._outputs(X, np.zeros_like(X), ids, stamp, frame,
+                                       np.zeros(ids.size))
+        self._buf.append(cloud)
+        self._waiting += 1
+        out: list[Output] = []
+        while self._waiting > self._lookahead():
+            out += self._flow_of(len(self._buf) - self._waiting)
+            self._waiting -= 1
+        p = self.params
+        keep = max(p.window, 2) if self._lookahead() == 0 else 2 * self._lookahead() + 2
+        while len(self._buf) > max(keep, self._waiting + 1):
+            self._buf.popleft()
+        return out
+
+    def _lookahead(self) -> int:
+        p = self.params
+        return p.lookahead if p.frame == 'object' else 0
+
+    def flush_waiting(self) -> list[Output]:
+        """The clouds still waiting for their look-ahead, each with the clouds there are."""
+        out: list[Output] = []
+        while self._waiting > 0:
+            out += self._flow_of(len(self._buf) - self._waiting)
+            self._waiting -= 1
+        return out
+
+    def _flow_of(self, j: int) -> list[Output]:
+        """The flow of ``self._buf[j]`` from ``self._buf[j - 1]``: causal over the ``window``
+        clouds ending at j, or with look-ahead L over the clouds j - 1 - L .. j + L."""
+        p = self.params
+        stamp, frame, X, ids, vis = self._buf[j]
+        pstamp, _, pX, pids, pvis = self._buf[j - 1]
+        dt = (stamp - pstamp) * 1e-9
+        L = self._lookahead()
+        if p.frame == 'camera':
+            sf = scene_flow(pX, pids, X, ids, dt, frame='camera')
+            out_vis = np.minimum(_lookup(pids, pvis, sf.ids), _lookup(ids, vis, sf.ids))
+            return self._outputs(sf.points, sf.velocity, sf.ids, stamp, frame, out_vis)
+        from .core.sceneflow.nrsfm_flow import (centred_flow, known_poses, motion_between,
+                                                object_poses, pair_flow, shrunk)
+        if L == 0:
+            lo, hi = max(0, j + 1 - max(p.window, 2)), j + 1
+        else:   # as many clouds after the pair as before it: a fit at a window's edge is
+            #     noisier than the raw difference (the first pair's flow came out 4x worse)
+            m = min(L, j - 1, len(self._buf) - 1 - j)
+            lo, hi = j - 1 - m, j + 1 + m
+        span = [self._buf[k] for k in range(lo, hi)]
+        window = [(c[2], c[3]) for c in span]
+        times = [c[0] * 1e-9 for c in span]
+        k = j - lo
+        rot = self._window_rotations([c[0] for c in span])
+        if rot is not None:
+            R, t = known_poses(window, rot, assume_checked=True)
+            self.ego_motion['poses'] += 1
         else:
-            dt = (stamp - prev[0]) * 1e-9
-            if p.frame == 'camera':
-                sf = scene_flow(prev[1], prev[2], X, ids, dt, frame='camera')
-            else:
-                from .core.sceneflow.nrsfm_flow import (known_poses, motion_between,
-                                                        object_poses, pair_flow, shrunk)
-                window = [*self._history, (X, ids)]
-                rot = self._window_rotations([*self._stamps, stamp])
-                if rot is not None:
-                    R, t = known_poses(window, rot, assume_checked=True)
-                    self.ego_motion['poses'] += 1
-                else:
-                    R, t, self._weights = object_poses(
-                        window, iterations=p.iterations if self._weights is None else
-                        p.warm_iterations, softness=p.softness, prior=self._weights,
-                        return_weights=True, max_points=p.pose_points, assume_checked=True)
-                    self.ego_motion['estimated'] += 1
-                sf = pair_flow((prev[1], prev[2]), (X, ids),
-                               motion_between(R, t, len(window) - 2, len(window) - 1), dt)
-            out_vis = np.minimum(_lookup(prev[2], prev[3], sf.ids), _lookup(ids, vis, sf.ids))
-            if p.frame == 'object' and p.shrinkage == 'jitter':
-                sf = shrunk(sf, window, R, t, dt, [*self._times, stamp * 1e-9],
-                            visibility=out_vis, index=self._neighbours(sf))
-                self._last = (sf.shrinkage, sf.jitter)
-            pts, v, out_ids = sf.points, sf.velocity, sf.ids
-        self._prev = (stamp, X, ids, vis)
-        self._history.append((X, ids))
-        self._times.append(stamp * 1e-9)
-        self._stamps.append(stamp)
-        while len(self._history) > max(p.window, 2) - 1:
-            self._history.popleft()
-            self._times.popleft()
-            self._stamps.popleft()
-        return self._outputs(pts, v, out_ids, stamp, frame, out_vis)
+            R, t, self._weights = object_poses(
+                window, iterations=p.iterations if self._weights is None else
+                p.warm_iterations, softness=p.softness, prior=self._weights,
+                return_weights=True, max_points=p.pose_points, assume_checked=True)
+            self.ego_motion['estimated'] += 1
+        gain = None
+        if L > 0:
+            sf, gain = centred_flow(window, R, t, k, times)
+        else:
+            sf = pair_flow(window[k - 1], window[k], motion_between(R, t, k - 1, k), dt)
+        out_vis = np.minimum(_lookup(pids, pvis, sf.ids), _lookup(ids, vis, sf.ids))
+        if p.shrinkage == 'jitter':
+            sf = shrunk(sf, window, R, t, dt, times, visibility=out_vis,
+                        index=self._neighbours(sf), gain=gain)
+            self._last = (sf.shrinkage, sf.jitter)
+        return self._outputs(sf.points, sf.velocity, sf.ids, stamp, frame, out_vis)
 
     def _neighbours(self, sf: Any) -> np.ndarray:
         """The shrinkage's neighbourhoods (nrsfm_flow.neighbour_index), found in the first

@@ -235,6 +235,7 @@ def test_node_finds_the_neighbourhoods_once_per_track_set(monkeypatch):
         proc.handle('points', pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
                                           'track_id': ids}, RosbagsFactory(),
                                          f * 100_000_000, 'cam'))
+    proc.flush()                    # the clouds waiting for their look-ahead
     assert calls == [400, 300]
 
 
@@ -314,11 +315,17 @@ def _cloud_msg(factory, X, ids, stamp):
 def _node_flows(seq, clouds, params=None):
     fac = RosbagsFactory()
     proc = SceneFlowProcessor(fac, params or SceneFlowParams())
-    flows = {}
+    frame_of = {int(s): f for f, s in enumerate(seq.stamps_ns)}
+    outs = []
     for f, (X, ids) in clouds.items():
-        m = proc.on_points(_cloud_msg(fac, X, ids, seq.stamps_ns[f]))[0][2]
-        flows[f] = (pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64),
-                    pc2.read_fields(m, ('track_id',), np.uint32)[:, 0])
+        outs += proc.on_points(_cloud_msg(fac, X, ids, seq.stamps_ns[f]))
+    flows = {}
+    for topic, _, m in outs + proc.flush():       # with look-ahead: later, and at the end
+        if topic.endswith('scene_flow/points'):
+            flows[frame_of[stamp_ns(m.header)]] = (
+                pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64),
+                pc2.read_fields(m, ('track_id',), np.uint32)[:, 0])
+    assert sorted(flows) == sorted(clouds)        # every cloud one flow
     return flows
 
 
@@ -345,13 +352,13 @@ def test_node_restarts_when_time_goes_backwards_and_on_param_change():
     Sw, P, S = _scene(F=6)
     ids = np.arange(S.shape[1])
     fac = RosbagsFactory()
-    proc = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none'))
+    proc = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none', lookahead=0))
     vs = []
     for f in (0, 1, 2, 1, 2):
         m = proc.on_points(_cloud_msg(fac, S[f], ids, 1e9 + f * 1e8))[0][2]
         vs.append(pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64))
     assert np.all(vs[3] == 0) and np.abs(vs[4]).max() > 0
-    proc.set_params(SceneFlowParams(frame='camera'))
+    proc.set_params(SceneFlowParams(frame='camera', lookahead=0))
     m = proc.on_points(_cloud_msg(fac, S[3], ids, 1e9 + 3e8))[0][2]
     assert np.all(pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64) == 0)
 
@@ -364,8 +371,8 @@ def test_node_shrinkage_and_visibility():
     Sw, P, S = _flap(0.15)
     clouds = _jittered(S, 0.001)
     fac = RosbagsFactory()
-    raw = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none'))
-    shr = SceneFlowProcessor(fac)
+    raw = SceneFlowProcessor(fac, SceneFlowParams(shrinkage='none', lookahead=0))
+    shr = SceneFlowProcessor(fac, SceneFlowParams(lookahead=0))    # each flow at once
     rng = np.random.default_rng(5)
     vis = (rng.random((len(S), S.shape[1])) > 0.2).astype(np.float32)
     for f, (X, ids) in enumerate(clouds):
@@ -432,9 +439,11 @@ def test_reconstructor_carries_the_tracker_visibility():
 # ---------------------------------------------------------------- pipeline accuracy
 def test_pipeline_scene_flow_beats_zero_flow(tmp_path):
     """Tracker -> reconstructor -> scene_flow on a 30 deg flag sweep (128x96, 60 frames).
-    Measured: object-frame relative EPE 0.540 with the reconstructor's cameras
-    (nrsfm/object_pose), 0.611 on the same clouds with the estimated ego-motion, 0.726 that
-    without the shrinkage (zero flow 1.0)."""
+    Measured (look-ahead 3, the default): object-frame relative EPE 0.533 with the
+    reconstructor's cameras (nrsfm/object_pose), 0.516 on the same clouds with the estimated
+    ego-motion, 0.510 that without the shrinkage, 0.611 causal (look-ahead 0); zero flow 1.0.
+    (At this small size the estimate edges out the cameras; at 256x192 the cameras win on
+    every flag and sheet case: docs/BENCHMARKS.md.)"""
     from nrsfm_ros.io.sequence_bag import write_sequence_bag
     from nrsfm_ros.pipeline import process_bag
     seq = generate(SynthConfig(surface='flag', width=128, height=96, frames=60,
@@ -447,16 +456,19 @@ def test_pipeline_scene_flow_beats_zero_flow(tmp_path):
     zero = scene_flow_errors(BagOutputs(flows={f: (0 * v, i) for f, (v, i) in
                                                out.flows.items()}), seq)
     assert r['scene_flow_frames_scored'] == 59
-    assert r['scene_flow_relative_epe'] < 0.9 * zero['scene_flow_relative_epe'], r
+    assert r['scene_flow_relative_epe'] < 0.65 * zero['scene_flow_relative_epe'], r
     # the same clouds without the reconstructor's cameras (nrsfm/object_pose): the estimated
-    # ego-motion, with and without the shrinkage
-    est = scene_flow_errors(BagOutputs(flows=_node_flows(seq, out.clouds)), seq)
-    raw = scene_flow_errors(BagOutputs(flows=_node_flows(
-        seq, out.clouds, SceneFlowParams(shrinkage='none'))), seq)['scene_flow_relative_epe']
+    # ego-motion, with and without the shrinkage, and without look-ahead
+    def rel(params=None):
+        return scene_flow_errors(BagOutputs(flows=_node_flows(seq, out.clouds, params)),
+                                 seq)['scene_flow_relative_epe']
+    est, raw, causal = rel(), rel(SceneFlowParams(shrinkage='none')), rel(
+        SceneFlowParams(lookahead=0))
     print(f"pipeline scene flow: {r['scene_flow_relative_epe']:.3f}, estimated ego-motion "
-          f"{est['scene_flow_relative_epe']:.3f}, raw {raw:.3f}")
-    assert r['scene_flow_relative_epe'] < 0.95 * est['scene_flow_relative_epe'], (r, est)
-    assert est['scene_flow_relative_epe'] < raw + 0.02, (est, raw)
+          f"{est:.3f}, raw {raw:.3f}, causal {causal:.3f}")
+    assert est < 0.65 * zero['scene_flow_relative_epe'], est
+    assert est < raw + 0.02, (est, raw)         # the shrinkage never costs
+    assert est < 0.9 * causal, (est, causal)
 
 
 # ---------------------------------------------------------------- the reconstructor's cameras
@@ -495,7 +507,7 @@ def _flows_with_poses(order, params=None, skip=()):
     Sw, P, S = _scene(F=6)
     ids = np.arange(S.shape[1])
     fac = RosbagsFactory()
-    proc = SceneFlowProcessor(fac, params or SceneFlowParams(shrinkage='none'))
+    proc = SceneFlowProcessor(fac, params or SceneFlowParams(shrinkage='none', lookahead=0))
     flows = {}
     for f in range(6):
         stamp = 1e9 + f * 1e8
@@ -541,6 +553,20 @@ def test_node_estimates_where_a_pose_never_comes_and_when_told():
                                                                      ego_motion='estimate'))
     assert proc.status()['ego_motion_estimated'] == '5'
     assert len(flows) == 6
+
+
+@pytest.mark.parametrize('order', ['pose first', 'cloud first'])
+def test_node_lookahead_with_the_reconstructors_cameras(order):
+    """With look-ahead the poses of the clouds after a pair are used too: every cloud one
+    flow, all from the cameras, close to the truth (the flap's sine, a period of ~10 clouds,
+    is not a quadratic over 6 of them: up to ~26% of its motion here)."""
+    proc, flows, true = _flows_with_poses(order, SceneFlowParams(shrinkage='none',
+                                                                 lookahead=2))
+    assert sorted(flows) == [int(1e9 + f * 1e8) for f in range(6)]
+    assert proc.status()['ego_motion_poses'] == '5'
+    for stamp, v in true.items():
+        err = np.linalg.norm(flows[stamp] - (v - v.mean(0)), axis=1).mean()
+        assert err < 0.35 * np.linalg.norm(v - v.mean(0), axis=1).mean(), stamp
 
 
 @pytest.mark.parametrize('mode', ['batch', 'dspr'])
@@ -611,3 +637,111 @@ def test_reconstructor_gives_each_track_its_first_colour():
         got = pc2.read_fields(m, ('track_id', 'rgb'), np.float64)
         want = np.array([first[int(i)] for i in got[:, 0]], np.float32)
         np.testing.assert_array_equal(got[:, 1].astype(np.float32), want)
+
+
+# ---------------------------------------------------------------- look-ahead
+def test_centred_flow_known_answers():
+    """A per-track quadratic over the window: exact on quadratic trajectories seen by a moving
+    camera; on pure jitter its noise power is the stated gain (below the raw difference's);
+    a track missing from one of the window's clouds keeps the raw difference (gain 1)."""
+    from nrsfm_ros.core.sceneflow.nrsfm_flow import centred_flow
+    rng = np.random.default_rng(5)
+    F, N, k = 6, 2000, 3
+    ids = np.arange(N)
+    tau = np.arange(F)[:, None, None] * 0.1
+    Y = rng.normal(size=(N, 3)) + tau * rng.normal(size=(N, 3)) \
+        + 3 * tau ** 2 * rng.normal(size=(N, 3))                  # object-frame trajectories
+    R = np.stack([Rotation.from_rotvec([0.1 * f, -0.05 * f, 0.02 * f]).as_matrix()
+                  for f in range(F)])
+    t = np.arange(F)[:, None] * [0.1, 0.0, 0.3] + [0, 0, 4.0]
+    clouds = [(Y[f] @ R[f].T + t[f], ids) for f in range(F)]
+    times = np.arange(F) * 0.1
+    sf, gain = centred_flow(clouds, R, t, k, times)
+    true = (Y[k] - Y[k - 1]) @ R[k - 1].T / 0.1
+    np.testing.assert_allclose(sf.velocity, true, atol=1e-9)
+    raw = pair_flow(clouds[k - 1], clouds[k], motion_between(R, t, k - 1, k), 0.1)
+    np.testing.assert_allclose(raw.velocity, true, atol=1e-9)       # no noise: both exact
+    assert np.all(gain < 1) and np.ptp(gain) == 0
+    # pure jitter: the velocity's variance per coordinate is 2 gain sigma^2 / dt^2
+    sigma = 0.01
+    still = [(rng.normal(scale=sigma, size=(N, 3)) @ R[f].T + t[f], ids) for f in range(F)]
+    sf, gain = centred_flow(still, R, t, k, times)
+    raw = pair_flow(still[k - 1], still[k], motion_between(R, t, k - 1, k), 0.1)
+    assert np.var(sf.velocity * 0.1) == pytest.approx(2 * gain[0] * sigma ** 2, rel=0.05)
+    assert np.var(raw.velocity * 0.1) == pytest.approx(2 * sigma ** 2, rel=0.05)
+    # track 7 missing from the first cloud: the raw difference for it, fitted for the rest
+    gap = [(clouds[0][0][ids != 7], ids[ids != 7]), *clouds[1:]]
+    noisy = [(X + rng.normal(scale=sigma, size=X.shape), i) for X, i in gap]
+    sf, gain = centred_flow(noisy, R, t, k, times)
+    raw = pair_flow(noisy[k - 1], noisy[k], motion_between(R, t, k - 1, k), 0.1)
+    assert gain[7] == 1.0 and sf.velocity[7] == pytest.approx(raw.velocity[7])
+    assert np.all(gain[ids != 7] < 1)
+    # 2 clouds: the raw difference; a bad pair index or stamps are named
+    sf2, g2 = centred_flow(clouds[:2], R[:2], t[:2], 1, times[:2])
+    np.testing.assert_allclose(sf2.velocity, pair_flow(clouds[0], clouds[1], motion_between(
+        R, t, 0, 1), 0.1).velocity)
+    assert np.all(g2 == 1)
+    with pytest.raises(ValueError, match='k=0'):
+        centred_flow(clouds, R, t, 0, times)
+    with pytest.raises(ValueError, match='times'):
+        centred_flow(clouds, R, t, 2, times[::-1])
+    # the shrinkage weighs the noise by the gain: a smaller gain keeps more of the flow
+    d = rng.normal(size=(100, 3))
+    assert shrink_factor(d, 0.05, d, index=np.arange(100)[:, None],
+                         gain=np.full(100, 0.5)) == pytest.approx(
+        shrink_factor(d, 0.025, d, index=np.arange(100)[:, None]))
+    with pytest.raises(ValueError, match='gain'):
+        shrink_factor(d, 0.05, d, gain=np.ones(3))
+
+
+def _replay(proc, S, ids, stamps, flush=True):
+    """Feed clouds; returns [(arrival index, stamp of each output)] and the outputs."""
+    fac = RosbagsFactory()
+    got, when = [], []
+    for f, st in enumerate(stamps):
+        for topic, _, m in proc.on_points(_cloud_msg(fac, S[f], ids, st)):
+            if topic.endswith('scene_flow/points'):
+                got.append(m)
+                when.append((f, stamp_ns(m.header)))
+    if flush:
+        for topic, _, m in proc.flush():
+            if topic.endswith('scene_flow/points'):
+                got.append(m)
+                when.append((len(stamps), stamp_ns(m.header)))
+    return when, got
+
+
+def test_node_lookahead_publishes_every_cloud_once_in_order_and_beats_causal():
+    """``lookahead`` L: the flow of cloud f is published when cloud f + L arrives (the first
+    cloud's zero flow at once), the rest at the end of the stream; every cloud exactly once,
+    in order.  On jittered clouds of the flapping scene the centred fit beats the causal
+    window (measured: causal 0.79, L = 2 0.35 relative EPE)."""
+    Sw, P, S = _flap(0.15)
+    F = len(S)
+    ids = np.arange(S.shape[1])
+    noisy = np.stack([X for X, _ in _jittered(S, 0.001)])
+    stamps = [int(1e9 + f * 1e8) for f in range(F)]
+    rel = {}
+    for L in (0, 2):
+        proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=L,
+                                                                     ego_motion='estimate'))
+        when, got = _replay(proc, noisy, ids, stamps)
+        assert [s for _, s in when] == stamps
+        assert [a for a, _ in when] == [0, *range(1 + L, F), *[F] * L]
+        v = [pc2.read_fields(m, ('vx', 'vy', 'vz'), np.float64) for m in got]
+        errs = []
+        for f in range(2, F):
+            true = (Sw[f] - Sw[f - 1]) @ P[f - 1, :3, :3].T / 0.1
+            errs.append(np.linalg.norm(v[f] - true, axis=1).mean()
+                        / np.linalg.norm(true, axis=1).mean())
+        rel[L] = float(np.mean(errs))
+    assert rel[2] < 0.85 * rel[0], rel
+    # time going backwards publishes the waiting clouds first, then restarts
+    proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=2))
+    when, _ = _replay(proc, noisy[:5], ids, stamps[:4] + [stamps[1]], flush=False)
+    assert [s for _, s in when] == stamps[:4] + [stamps[1]]
+    assert [a for a, _ in when] == [0, 3, 4, 4, 4]
+    # the camera frame has no look-ahead: at once
+    proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=2, frame='camera'))
+    when, _ = _replay(proc, noisy[:4], ids, stamps[:4], flush=False)
+    assert [a for a, _ in when] == [0, 1, 2, 3]

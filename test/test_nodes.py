@@ -265,3 +265,52 @@ def test_registrar_processor_priors_from_shared_track_ids():
     assert proc.stats.malformed == 1
     with pytest.raises(ValueError, match='needs prior_matches > 0'):
         RegistrarParams(method='ecpd-nonrigid').updated({})
+
+
+def test_scene_flow_node_lookahead_flushes_when_the_clouds_stop(rclpy_context):
+    """Live, with ``lookahead`` 2 the last two clouds' flows wait for clouds that never come:
+    ``idle_flush_s`` after the last cloud the node publishes them (every cloud one flow)."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+
+    from nrsfm_ros.io import pointcloud2 as pc2
+    from nrsfm_ros.io.msgtypes import RclpyFactory
+    from nrsfm_ros.nodes.common import RELIABLE
+    from nrsfm_ros.nodes.scene_flow import SceneFlowNode
+    node = SceneFlowNode(context=rclpy_context, parameter_overrides=[
+        Parameter('lookahead', value=2), Parameter('idle_flush_s', value=1.5)])
+    probe = Node('probe', context=rclpy_context)
+    pub = probe.create_publisher(PointCloud2, 'nrsfm/points', RELIABLE)
+    flows: list = []
+    probe.create_subscription(PointCloud2, 'scene_flow/points', flows.append, RELIABLE)
+    rng = np.random.default_rng(0)
+    X0 = rng.normal(size=(300, 3)) * [0.2, 0.2, 0.02] + [0, 0, 2.0]
+    fac = RclpyFactory()
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(probe)
+    try:
+        end = time.monotonic() + 10
+        while (pub.get_subscription_count() < 1 or node.count_publishers('scene_flow/points') < 1
+               ) and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for f in range(5):
+            X = (X0 + 0.002 * f).astype(np.float32)
+            pub.publish(pc2.to_msg({'x': X[:, 0], 'y': X[:, 1], 'z': X[:, 2],
+                                    'track_id': np.arange(300, dtype=np.uint32)}, fac,
+                                   int(1e9 + f * 1e8), 'cam'))
+        end = time.monotonic() + 10
+        while len(flows) < 3 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        t3 = time.monotonic()
+        assert len(flows) == 3                    # clouds 0..2; 3 and 4 wait
+        while len(flows) < 5 and time.monotonic() < t3 + 10:
+            ex.spin_once(timeout_sec=0.05)
+        waited = time.monotonic() - t3
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+    assert [f.header.stamp.nanosec for f in flows] == [int(f * 1e8) for f in range(5)]
+    assert 0.5 < waited < 8.0, waited            # after the idle time, not at once

@@ -163,11 +163,29 @@ class ProcessorNode(Node):
             else:
                 self.on_idle()
 
+    # the input whose silence for ``idle_flush_s`` publishes what the processor still holds
+    # (its ``flush``): a stream that stopped before a window or look-ahead filled
+    idle_flush_kind: str | None = None
+    _last_input = 0.0
+
     def on_idle(self) -> None:
         """Called by the worker thread when no input arrived for 0.2 s (long work done here
         does not hold up a shutdown: the worker is a daemon thread)."""
+        idle = getattr(self.processor.params, 'idle_flush_s', 0.0)
+        if self.idle_flush_kind is None or idle <= 0 or not self._last_input or \
+                time.monotonic() - self._last_input < idle:
+            return
+        try:
+            with self.lock:
+                outputs = self.processor.flush()
+        except Exception as err:  # noqa: BLE001 -- contained like every message
+            self._failed('flush', err)
+            return
+        self.publish_outputs(outputs)
 
     def _on_message(self, kind: str, msg: Any) -> None:
+        if kind == self.idle_flush_kind:
+            self._last_input = time.monotonic()
         try:
             with self.lock:
                 outputs = self.processor.handle(kind, msg)

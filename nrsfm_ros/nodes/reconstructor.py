@@ -3,13 +3,14 @@ nrsfm/object_pose (its camera of each cloud, where the solve has cameras); mode 
 from __future__ import annotations
 
 import sys
-import time
 
 from ..processing import ReconstructorProcessor
 from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
 
 
 class ReconstructorNode(ProcessorNode):
+    idle_flush_kind = 'tracks'   # a stream that stopped before its window (or batch) filled
+
     def __init__(self) -> None:
         super().__init__('reconstructor', ReconstructorProcessor,
                          [('points', 'sensor_msgs/msg/PointCloud2'),
@@ -21,25 +22,6 @@ class ReconstructorNode(ProcessorNode):
         # mode hdmnet reconstructs each camera image alone (other modes ignore them uncounted)
         self.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
         self.subscribe('image_compressed', 'sensor_msgs/msg/CompressedImage', SENSOR)
-        self._last_tracks = time.monotonic()
-
-    def _on_message(self, kind: str, msg: object) -> None:
-        if kind == 'tracks':
-            self._last_tracks = time.monotonic()
-        super()._on_message(kind, msg)
-
-    def on_idle(self) -> None:
-        """A stream that stopped before its window (or batch) filled still gets its clouds."""
-        idle = self.processor.params.idle_flush_s
-        if idle > 0 and time.monotonic() - self._last_tracks >= idle:
-            assert isinstance(self.processor, ReconstructorProcessor)
-            try:
-                with self.lock:
-                    outputs = self.processor.flush()
-            except Exception as err:  # noqa: BLE001 -- contained like every message
-                self._failed('flush', err)
-                return
-            self.publish_outputs(outputs)
 
 
 def main(args: list[str] | None = None) -> int:

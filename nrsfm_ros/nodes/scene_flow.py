@@ -6,16 +6,19 @@ camera/depth/image_raw (32FC1 m or 16UC1 mm) + camera/camera_info, paired by sta
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 from ..processing import SceneFlowProcessor
 from .common import RELIABLE, SENSOR, ProcessorNode, spin_node
 
 
 class SceneFlowNode(ProcessorNode):
-    def __init__(self) -> None:
+    idle_flush_kind = 'points'   # clouds still waiting for their look-ahead (or object pose)
+
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__('scene_flow', SceneFlowProcessor,
                          [('scene_flow', 'sensor_msgs/msg/PointCloud2'),
-                          ('markers', 'visualization_msgs/msg/MarkerArray')])
+                          ('markers', 'visualization_msgs/msg/MarkerArray')], **kwargs)
         if self.processor.params.method == 'msf':
             self.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
             self.subscribe('depth', 'sensor_msgs/msg/Image', SENSOR)
