@@ -1121,7 +1121,7 @@ class SceneFlowProcessor(Processor):
         self._waiting += 1
         out: list[Output] = []
         while self._waiting > self._lookahead():
-            out += self._flow_of(len(self._buf) - self._waiting)
+            out += self._due(len(self._buf) - self._waiting)
             self._waiting -= 1
         p = self.params
         keep = max(p.window, 2) if self._lookahead() == 0 else 2 * self._lookahead() + 2
@@ -1137,9 +1137,24 @@ class SceneFlowProcessor(Processor):
         """The clouds still waiting for their look-ahead, each with the clouds there are."""
         out: list[Output] = []
         while self._waiting > 0:
-            out += self._flow_of(len(self._buf) - self._waiting)
+            out += self._due(len(self._buf) - self._waiting)
             self._waiting -= 1
         return out
+
+    def _due(self, j: int) -> list[Output]:
+        """The flow of ``self._buf[j]``, now due.  Where it cannot be computed (e.g. a cloud
+        that shares no track with the one before it) the cloud is still published, with zero
+        flow and visibility 0, and counted as a fallback with the reason (``/diagnostics``
+        ``fallbacks``, ``last_error``): with look-ahead the cloud was accepted on arrival,
+        frames earlier, so its failure must not be charged to the message now in hand."""
+        try:
+            return self._flow_of(j)
+        except Exception as err:  # noqa: BLE001 -- contained: the cloud is published anyway
+            stamp, frame, X, ids, _ = self._buf[j]
+            self.stats.fallbacks += 1
+            self.stats.last_error = (f'points stamp {stamp}: published with zero flow: '
+                                     f'{type(err).__name__}: {err}')
+            return self._outputs(X, np.zeros_like(X), ids, stamp, frame, np.zeros(ids.size))
 
     def _flow_of(self, j: int) -> list[Output]:
         """The flow of ``self._buf[j]`` from ``self._buf[j - 1]``: causal over the ``window``

@@ -745,3 +745,46 @@ def test_node_lookahead_publishes_every_cloud_once_in_order_and_beats_causal():
     proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=2, frame='camera'))
     when, _ = _replay(proc, noisy[:4], ids, stamps[:4], flush=False)
     assert [a for a, _ in when] == [0, 1, 2, 3]
+
+
+def test_node_lookahead_contains_a_waiting_clouds_failure(monkeypatch):
+    """With look-ahead a cloud's flow is computed frames after the cloud was accepted: a
+    failure then must neither lose the cloud nor be charged to the message in hand, nor stall
+    the clouds behind it.  The failing cloud is published with zero flow and visibility 0 and
+    counted as a fallback with the reason; a cloud that shares no track with the one before it
+    (the fuzz test's case) is published too."""
+    import nrsfm_ros.core.sceneflow.nrsfm_flow as nf
+    Sw, P, S = _flap(0.15)
+    ids = np.arange(S.shape[1])
+    stamps = [int(1e9 + f * 1e8) for f in range(6)]
+    real, calls = nf.centred_flow, []
+
+    def flaky(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError('boom')
+        return real(*args, **kwargs)
+    monkeypatch.setattr(nf, 'centred_flow', flaky)
+    proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=2,
+                                                                 ego_motion='estimate'))
+    when, got = _replay(proc, S[:6], ids, stamps)
+    assert [s for _, s in when] == stamps                      # every cloud, in order
+    assert proc.stats.failed == 0 and proc.stats.fallbacks == 1
+    assert 'zero flow' in proc.stats.last_error and 'boom' in proc.stats.last_error
+    assert str(stamps[2]) in proc.stats.last_error
+    v2 = pc2.read_fields(got[2], ('vx', 'vy', 'vz', 'visibility'), np.float64)
+    assert np.all(v2 == 0) and len(v2) == len(ids)
+    v3 = pc2.read_fields(got[3], ('vx', 'vy', 'vz'), np.float64)
+    assert np.abs(v3).max() > 0                                # the next ones are estimated
+    # a cloud with none of the previous cloud's tracks, then clouds that continue it
+    monkeypatch.setattr(nf, 'centred_flow', real)
+    proc = SceneFlowProcessor(RosbagsFactory(), SceneFlowParams(lookahead=2))
+    fac = RosbagsFactory()
+    out = []
+    for f in range(6):
+        out += proc.handle('points', _cloud_msg(fac, S[f], ids + (1000 if f >= 3 else 0),
+                                                stamps[f]))
+    out += proc.flush()
+    flows = [m for t, _, m in out if t.endswith('scene_flow/points')]
+    assert [stamp_ns(m.header) for m in flows] == stamps
+    assert proc.stats.failed == 0

@@ -294,6 +294,8 @@ def neighbour_index(points: np.ndarray, neighbours: int = NEIGHBOURS) -> np.ndar
     from scipy.spatial import cKDTree
     pts = np.asarray(points, np.float64)
     k = min(max(int(neighbours), 1), len(pts))
+    if k == 0:                                       # no points: no neighbourhoods
+        return np.zeros((0, 0), np.intp)
     _, nb = cKDTree(pts).query(pts, k, workers=-1)
     return nb.reshape(len(pts), k)
 
