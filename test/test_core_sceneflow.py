@@ -787,4 +787,4 @@ def test_node_lookahead_contains_a_waiting_clouds_failure(monkeypatch):
     out += proc.flush()
     flows = [m for t, _, m in out if t.endswith('scene_flow/points')]
     assert [stamp_ns(m.header) for m in flows] == stamps
-    assert proc.stats.failed == 0
+    assert proc.stats.failed == 0 and proc.stats.fallbacks == 0, proc.stats.last_error
