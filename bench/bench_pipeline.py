@@ -4,7 +4,8 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--true-cameras] [--periodic N] [--live] [--set name=value ...] [--json out.json]
+        [--true-cameras] [--periodic N] [--live] [--perturb N] [--set name=value ...]
+        [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -34,6 +35,10 @@ and track id); its static/flat baselines are recomputed on exactly those points 
 keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
 ``--set name=value``: reconstructor parameters (YAML values, as on the node) for the pipeline
 rows and ``stream(GT)``, e.g. ``--set projection=weak batch_frames=30``.
+``--perturb N``: each pipeline mode also runs on N perturbed copies of every render (+-1 grey
+level on 1% of the pixels, seeded 1..N: :func:`perturbed`), scored against the same truth, and
+a table gives the unperturbed value with the perturbed ones' min / median / max: how far one
+render can be trusted to rank methods (session 24: occluded planar cases moved 0.03-0.41).
 ``--modes`` also takes ``dspr-full``: ``dspr`` with its recurrence test off (no frame is served
 from a stored state, every one goes through the per-frame energy): issue 13's "the same mode
 without compression", which the compression table then compares ``dspr`` with.
@@ -171,10 +176,40 @@ def mode_params(rec: ReconstructorParams, mode: str) -> ReconstructorParams:
     return replace(rec, mode=base, **over)
 
 
+def perturbed(images: np.ndarray, seed: int, share: float = 0.01) -> np.ndarray:
+    """A copy of ``images`` (F, H, W, C) uint8 with +-1 grey level (all channels alike) on
+    ``share`` of the pixels of every frame, drawn from ``seed``: a change far below any
+    camera's noise, to measure how a pipeline result depends on its exact input."""
+    rng = np.random.default_rng(seed)
+    out = images.astype(np.int16)
+    hit = rng.random(out.shape[:3]) < share
+    step = rng.choice(np.array([-1, 1], np.int16), size=out.shape[:3])
+    out += (hit * step)[..., None] if out.ndim == 4 else hit * step
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def pipeline_runs(seq, bag: Path, out: Path, modes: list[str], rec: ReconstructorParams,
+                  trk: TrackerParams | None) -> tuple[float, dict]:
+    """``process`` on ``bag``: the tracker once, then the reconstructor in each mode on its
+    tracks: (tracker seconds, {mode: (clouds, report, seconds)}).  The tracks stay in
+    ``out / 'tracks'`` (with the inputs)."""
+    t = time.perf_counter()
+    process_bag(bag, out / 'tracks', stages=['tracker'], progress=False, copy_inputs=True,
+                params={'tracker': trk} if trk is not None else None)
+    tracker_s = time.perf_counter() - t
+    runs = {}
+    for mode in modes:
+        t = time.perf_counter()
+        rep = process_bag(out / 'tracks', out / mode, stages=['reconstructor'],
+                          progress=False, params={'reconstructor': mode_params(rec, mode)})
+        runs[mode] = (read_clouds(out / mode, seq.stamps_ns), rep, time.perf_counter() - t)
+    return tracker_s, runs
+
+
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
              rec: ReconstructorParams | None = None, true_depths: bool = False,
-             trk: TrackerParams | None = None) -> dict:
+             trk: TrackerParams | None = None, perturb: int = 0) -> dict:
     rec = rec or ReconstructorParams()
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
@@ -206,17 +241,10 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         shutil.rmtree(case)
     case.mkdir(parents=True)
     write_sequence_bag(seq, case / 'in')
-    t = time.perf_counter()
-    rep = process_bag(case / 'in', case / 'tracks', stages=['tracker'], progress=False,
-                      copy_inputs=True, params={'tracker': trk} if trk is not None else None)
-    row['tracker_s'] = time.perf_counter() - t
+    row['tracker_s'], runs = pipeline_runs(seq, case / 'in', case, modes, rec, trk)
     outs = []
     for mode in modes:
-        t = time.perf_counter()
-        rep = process_bag(case / 'tracks', case / mode, stages=['reconstructor'], progress=False,
-                          params={'reconstructor': mode_params(rec, mode)})
-        row[f'{mode}_s'] = time.perf_counter() - t
-        clouds = read_clouds(case / mode, seq.stamps_ns)
+        clouds, rep, row[f'{mode}_s'] = runs[mode]
         s = score(clouds, seq).summary()
         row[mode], row[f'{mode}_static'] = s['e3d'], s['static']
         row[f'{mode}_inverted'] = depth_reflected_frames(clouds, seq)
@@ -238,6 +266,13 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
                                                                     seq.stamps_ns))
         row['live_exit'] = lv.get('graph_exit')
         outs.append(row['live_frames'])
+    for k in range(1, perturb + 1):
+        pdir = case / f'perturbed_{k}'
+        write_sequence_bag(replace(seq, images=perturbed(seq.images, k)), pdir / 'in')
+        for mode, (clouds, _, _) in pipeline_runs(seq, pdir / 'in', pdir, modes, rec,
+                                                  trk)[1].items():
+            row.setdefault(f'{mode}_perturbed', []).append(score(clouds, seq).summary()['e3d'])
+        shutil.rmtree(pdir, ignore_errors=True)
     row['frames_out'] = min(outs) if outs else 0
     pipe = [row[k] for k in modes + (['live'] if live else []) if np.isfinite(row[k])]
     row['best_pipeline'] = min(pipe) if pipe else float('nan')
@@ -268,6 +303,9 @@ def main() -> None:
                    'image size: 4 = ~19 deg field of view, 1.6 = ~45 deg)')
     p.add_argument('--periodic', type=int, default=0,
                    help='deformation period in frames (0: the usual non-repeating motion)')
+    p.add_argument('--perturb', type=int, default=0, metavar='N',
+                   help='also run each pipeline mode on N perturbed copies of every render '
+                   '(+-1 grey level on 1%% of the pixels) and tabulate the spread')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
     p.add_argument('--set', nargs='*', default=[], metavar='NAME=VALUE',
                    help='reconstructor parameters (as on the node, YAML values)')
@@ -291,7 +329,7 @@ def main() -> None:
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
                                       a.periodic, a.distance)
                     row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec,
-                                   a.true_depths, trk)
+                                   a.true_depths, trk, a.perturb)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)
@@ -332,6 +370,15 @@ def main() -> None:
         print()
         table(['surface', 'cam deg', 'amp', 'mode', 'e3D', 'occluded', 'visible',
                'occluded/visible'], occ_rows)
+    spread = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+               'yes' if r['occluder'] else 'no', m, f4(r[m]),
+               f4(min(r[f'{m}_perturbed'])), f4(float(np.median(r[f'{m}_perturbed']))),
+               f4(max(r[f'{m}_perturbed'])), f4(r['static'])]
+              for r in rows for m in modes if f'{m}_perturbed' in r]
+    if spread:
+        print()
+        table(['surface', 'cam deg', 'amp', 'occl', 'mode', 'e3D', f'perturbed x{a.perturb}: min',
+               'median', 'max', 'static'], spread)
     full = 'dspr-full' in modes
     comp = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m,
              f"{r[f'{m}_compression']:.1f}", f4(r[m])]

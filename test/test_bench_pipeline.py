@@ -130,3 +130,37 @@ def test_study_planar_perspective_refinement_beats_the_perspective_step():
     r = study.run_case('flag:30:1:1.6', 8, 2, (96, 72), 20)
     assert r['refined'] < 0.6 * r['step'] and r['refined'] < 1.2 * r['true_depths'], r
     assert r['refined_px'] < r['step_px'] and r['refined'] < r['static'], r
+
+
+def test_perturbed_changes_one_grey_level_on_the_share_asked_and_is_seeded(bench):
+    """--perturb: +-1 grey level (every channel of a pixel alike) on about 1% of the pixels,
+    the same for the same seed, another draw for another seed, clipped at 0 and 255."""
+    import numpy as np
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, size=(4, 48, 64, 3), dtype=np.uint8)
+    images[0, :8] = 0
+    images[0, 8:16] = 255
+    p1 = bench.perturbed(images, 1)
+    assert p1.dtype == np.uint8 and p1.shape == images.shape
+    d = p1.astype(int) - images.astype(int)
+    assert np.abs(d).max() == 1
+    changed = (d != 0).any(axis=3)
+    assert 0.005 < changed.mean() < 0.015
+    assert np.all((d == d[..., :1]) | (images == 0) | (images == 255))   # channels alike
+    np.testing.assert_array_equal(bench.perturbed(images, 1), p1)
+    assert (bench.perturbed(images, 2) != p1).any()
+    assert images[0, :8].min() == 0 and p1[0, :8].min() == 0     # clipped, never wrapped
+
+
+def test_pipeline_runs_feed_every_mode_the_trackers_tracks(bench, tmp_path):
+    """The pipeline rows and every perturbed copy run through one function: the tracker once,
+    each mode on its tracks, one cloud per frame."""
+    from nrsfm_ros.io.sequence_bag import write_sequence_bag
+    from nrsfm_ros.params import ReconstructorParams
+    seq = generate(bench.case_config('flag', (96, 72), 12, 30.0, 1.0, False))
+    write_sequence_bag(seq, tmp_path / 'in')
+    tracker_s, runs = bench.pipeline_runs(seq, tmp_path / 'in', tmp_path, ['batch', 'online'],
+                                          ReconstructorParams(), None)
+    assert tracker_s > 0 and sorted(runs) == ['batch', 'online']
+    for clouds, rep, seconds in runs.values():
+        assert len(clouds) == 12 and seconds > 0 and not rep.failures
