@@ -122,8 +122,10 @@ def rule(default: Any, check: Callable[[Any], str | None] | None = None,
 
 
 def _queue_size() -> Any:
-    return rule(64, _at_least(1), 'live: messages each input subscription may hold while the '
-                'node is busy')
+    return rule(0, _at_least(0), 'live: messages each input subscription may hold while the '
+                'node is busy; 0: by the input\'s QoS, 1 on a best-effort (camera-rate) input, '
+                'so that its latency stays bounded when the node cannot keep up, 64 on a '
+                'reliable one')
 
 
 def _queue_policy() -> Any:

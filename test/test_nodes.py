@@ -314,3 +314,80 @@ def test_scene_flow_node_lookahead_flushes_when_the_clouds_stop(rclpy_context):
         probe.destroy_node()
     assert [f.header.stamp.nanosec for f in flows] == [int(f * 1e8) for f in range(5)]
     assert 0.5 < waited < 8.0, waited            # after the idle time, not at once
+
+
+def test_input_queue_depth_by_qos_and_keep_latest():
+    """queue_size 0 (the default): a best-effort input holds only its newest message, a
+    reliable one 64; a set queue_size applies to every input; a full input drops its oldest."""
+    from nrsfm_ros.nodes.common import InputQueue, queue_depth
+    from nrsfm_ros.params import NODE_PARAMS
+    assert all(NODE_PARAMS[n]().queue_size == 0 for n in NODE_PARAMS)
+    assert (queue_depth(0, False), queue_depth(0, True), queue_depth(5, False)) == (1, 64, 5)
+    dropped = []
+    q = InputQueue(lambda kind: 1 if kind == 'image' else 3, lambda: 'keep_latest',
+                   dropped.append)
+    for i in range(4):
+        q.put('image', i)
+        q.put('points', i)
+    got = [q.get(0.01) for _ in range(len(q))]
+    assert got == [('points', 1), ('points', 2), ('image', 3), ('points', 3)]
+    assert dropped.count('image') == 3 and dropped.count('points') == 1
+
+
+def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):
+    """A tracker node that needs 0.15 s a frame, fed 40 frames at 50 Hz on its default
+    (best-effort) camera input: it works on the newest frame, so each frame it processes
+    waited at most about one processing time, and every frame it skipped is counted as
+    dropped.  With the old fixed depth of 64 the last frames waited for all before them."""
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+
+    from nrsfm_ros.io import image as img_io
+    from nrsfm_ros.io.msgtypes import RclpyFactory
+    from nrsfm_ros.nodes.common import SENSOR, ProcessorNode
+    from nrsfm_ros.processing import TrackerProcessor
+
+    waited: list[float] = []
+
+    class SlowTracker(TrackerProcessor):
+        def on_image(self, msg):
+            waited.append(time.monotonic() - sent[msg.header.stamp.nanosec])
+            time.sleep(0.15)
+            return []
+
+    sent: dict[int, float] = {}
+    node = ProcessorNode('tracker', SlowTracker, [], context=rclpy_context)
+    node.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
+    probe = Node('overload_probe', context=rclpy_context)
+    pub = probe.create_publisher(Image, 'camera/image_raw', SENSOR)
+    fac = RclpyFactory()
+    frame = np.zeros((48, 64, 3), np.uint8)
+    ex = MultiThreadedExecutor(num_threads=2, context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(probe)
+    try:
+        end = time.monotonic() + 10
+        while pub.get_subscription_count() < 1 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for i in range(40):
+            msg = img_io.array_to_image(frame, 'rgb8', fac, 0, 'cam')
+            msg.header.stamp.nanosec = i
+            sent[i] = time.monotonic()
+            pub.publish(msg)
+            t = time.monotonic() + 0.02
+            while time.monotonic() < t:
+                ex.spin_once(timeout_sec=0.005)
+        end = time.monotonic() + 5
+        while time.monotonic() < end and len(waited) + node.processor.stats.dropped < 40:
+            ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown()
+        node.queue.close()
+        node.destroy_node()
+        probe.destroy_node()
+    st = node.processor.stats
+    assert node.queue_depth('image') == 1
+    assert 3 <= len(waited) <= 12 and st.dropped >= 25
+    assert len(waited) + st.dropped == 40           # every frame processed or counted
+    assert max(waited) < 0.4, waited                 # 64 deep: the last waited ~5 s

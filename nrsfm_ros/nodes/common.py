@@ -37,12 +37,29 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 SENSOR = qos_profile_sensor_data
 
 
+# ``queue_size: 0`` (the default): how many messages an input holds, by its QoS.  A best-effort
+# (sensor-data) input is a camera-rate stream: holding only the newest message keeps the
+# latency at about one processing time when the node cannot keep up (a 30 Hz 640x480 camera
+# into the tracker, bench/bench_overload.py: p50 latency 2981 ms with 64 held, 29x its
+# processing time, 140 ms = 1.25x with 1).  A reliable input is a pipeline stage's output, whose messages all
+# matter and may come in bursts (the reconstructor's batch of 60 clouds at once).
+AUTO_QUEUE_SENSOR = 1
+AUTO_QUEUE_RELIABLE = 64
+
+
+def queue_depth(queue_size: int, reliable: bool) -> int:
+    """Messages one input holds: ``queue_size``, or with 0 the automatic depth by QoS."""
+    if queue_size > 0:
+        return int(queue_size)
+    return AUTO_QUEUE_RELIABLE if reliable else AUTO_QUEUE_SENSOR
+
+
 class InputQueue:
     """The bounded input queue of a node: one FIFO in arrival order, at most ``size(kind)``
     messages per subscription kind.  A full kind under ``keep_latest`` discards its oldest
     message (counted by ``on_drop``); under ``keep_all`` ``put`` waits until there is room."""
 
-    def __init__(self, size: Callable[[], int], policy: Callable[[], str],
+    def __init__(self, size: Callable[[str], int], policy: Callable[[], str],
                  on_drop: Callable[[str], None]) -> None:
         self._items: deque[tuple[str, Any]] = deque()
         self._counts: dict[str, int] = {}
@@ -55,7 +72,7 @@ class InputQueue:
 
     def put(self, kind: str, msg: Any) -> None:
         with self._cond:
-            while not self.closed and self._counts.get(kind, 0) >= self._size():
+            while not self.closed and self._counts.get(kind, 0) >= self._size(kind):
                 if self._policy() == 'keep_all':
                     self._cond.wait(0.1)
                     continue
@@ -114,8 +131,9 @@ class ProcessorNode(Node):
         self._out_pubs: dict[str, Any] = {}
         self._logged: set[str] = set()
         self.input_group = MutuallyExclusiveCallbackGroup()
-        self.queue = InputQueue(lambda: self.processor.params.queue_size,
-                                lambda: self.processor.params.queue_policy, self._dropped)
+        self._reliable: dict[str, bool] = {}      # per input kind: its QoS is reliable
+        self.queue = InputQueue(self.queue_depth, lambda: self.processor.params.queue_policy,
+                                self._dropped)
         for kind, msgtype in outputs:  # eagerly, so discovery completes before data flows
             self.publisher(TOPICS[kind], msgtype)
         self.diag_pub = self.create_publisher(rclpy_class('diagnostic_msgs/msg/DiagnosticArray'),
@@ -134,8 +152,13 @@ class ProcessorNode(Node):
             self.processor.set_params(new)
         return SetParametersResult(successful=True)
 
+    def queue_depth(self, kind: str) -> int:
+        """Messages the input ``kind`` may hold (``queue_size``; 0: by its QoS)."""
+        return queue_depth(self.processor.params.queue_size, self._reliable.get(kind, True))
+
     def subscribe(self, kind: str, msgtype: str, qos: QoSProfile) -> None:
         topic = TOPICS[kind]
+        self._reliable[kind] = qos.reliability == ReliabilityPolicy.RELIABLE
         events = SubscriptionEventCallbacks(
             message_lost=lambda info: self._dropped(kind, int(info.total_count_change)))
         self.create_subscription(rclpy_class(msgtype), topic,
