@@ -4,8 +4,8 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--true-cameras] [--periodic N] [--live] [--perturb N] [--set name=value ...]
-        [--json out.json]
+        [--true-cameras] [--periodic N] [--live] [--perturb N] [--tracker-split]
+        [--set name=value ...] [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -39,6 +39,11 @@ rows and ``stream(GT)``, e.g. ``--set projection=weak batch_frames=30``.
 level on 1% of the pixels, seeded 1..N: :func:`perturbed`), scored against the same truth, and
 a table gives the unperturbed value with the perturbed ones' min / median / max: how far one
 render can be trusted to rank methods (session 24: occluded planar cases moved 0.03-0.41).
+``--tracker-split``: where the tracker costs, per case (``evaluation.tracker_split``, on the
+tracker's tracks that ground truth knows, i.e. those of its first reference): the stream on its
+tracks, on the true positions with its visibility (what its missing-data pattern costs) and on
+its positions with the true visibility (what its position errors cost), with the visible
+observations' pixel error (median, p90, share over 3 px) and the visible shares; a table.
 ``--modes`` also takes ``dspr-full``: ``dspr`` with its recurrence test off (no frame is served
 from a stored state, every one goes through the per-frame energy): issue 13's "the same mode
 without compression", which the compression table then compares ``dspr`` with.
@@ -63,8 +68,9 @@ from benchlib import parser, table  # noqa: E402
 from nrsfm_ros.core.metrics import rotation_angle_deg  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 from nrsfm_ros.core.nrsfm.perspective import corrected_tracks  # noqa: E402
-from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds, score,  # noqa: E402
-                                  shapes_as_clouds, stream_on_tracks)
+from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds,  # noqa: E402
+                                  read_tracks, score, shapes_as_clouds, stream_on_tracks,
+                                  tracker_split)
 from nrsfm_ros.io.sequence_bag import write_sequence_bag  # noqa: E402
 from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM  # noqa: E402
@@ -209,7 +215,8 @@ def pipeline_runs(seq, bag: Path, out: Path, modes: list[str], rec: Reconstructo
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
              rec: ReconstructorParams | None = None, true_depths: bool = False,
-             trk: TrackerParams | None = None, perturb: int = 0) -> dict:
+             trk: TrackerParams | None = None, perturb: int = 0, split: bool = False
+             ) -> dict:
     rec = rec or ReconstructorParams()
     seq = generate(cfg)
     row: dict = {'surface': cfg.surface, 'motion_deg': cfg.camera_motion_deg,
@@ -266,6 +273,9 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
                                                                     seq.stamps_ns))
         row['live_exit'] = lv.get('graph_exit')
         outs.append(row['live_frames'])
+    if split:
+        W, V, ids = read_tracks(case / 'tracks', seq.stamps_ns)
+        row['split'] = tracker_split(W, V, ids, seq, **stream_overrides(rec))
     for k in range(1, perturb + 1):
         pdir = case / f'perturbed_{k}'
         write_sequence_bag(replace(seq, images=perturbed(seq.images, k)), pdir / 'in')
@@ -306,6 +316,9 @@ def main() -> None:
     p.add_argument('--perturb', type=int, default=0, metavar='N',
                    help='also run each pipeline mode on N perturbed copies of every render '
                    '(+-1 grey level on 1%% of the pixels) and tabulate the spread')
+    p.add_argument('--tracker-split', action='store_true',
+                   help='also split what the tracker costs into its position errors and its '
+                   'missing-data pattern (a table)')
     p.add_argument('--work', default=None, help='keep the bags here (default: a temp folder)')
     p.add_argument('--set', nargs='*', default=[], metavar='NAME=VALUE',
                    help='reconstructor parameters (as on the node, YAML values)')
@@ -329,7 +342,7 @@ def main() -> None:
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
                                       a.periodic, a.distance)
                     row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec,
-                                   a.true_depths, trk, a.perturb)
+                                   a.true_depths, trk, a.perturb, a.tracker_split)
                     rows.append(row)
                     print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                       for k, v in row.items()}), file=sys.stderr)
@@ -379,6 +392,19 @@ def main() -> None:
         print()
         table(['surface', 'cam deg', 'amp', 'occl', 'mode', 'e3D', f'perturbed x{a.perturb}: min',
                'median', 'max', 'static'], spread)
+    split = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+              'yes' if r['occluder'] else 'no', f4(r['static']), f4(r['stream_gt']),
+              f4(r['split']['trk']), f4(r['split']['gt_positions']),
+              f4(r['split']['gt_visibility']), f"{r['split']['median_px']:.2f}",
+              f"{r['split']['p90_px']:.2f}", f"{r['split']['over_3px']:.3f}",
+              f"{r['split']['visible_tracker']:.2f} / {r['split']['visible_truth']:.2f}"]
+             for r in rows if 'split' in r]
+    if split:
+        print()
+        table(['surface', 'cam deg', 'amp', 'occl', 'static', 'stream(GT)',
+               'stream(tracker, first-reference tracks)', 'true positions, tracker visibility',
+               'tracker positions, true visibility', 'visible error median px', 'p90 px',
+               'share > 3 px', 'visible: tracker / truth'], split)
     full = 'dspr-full' in modes
     comp = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m,
              f"{r[f'{m}_compression']:.1f}", f4(r[m])]

@@ -39,6 +39,63 @@ def read_clouds(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['poi
     return out
 
 
+def read_tracks(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['tracks']
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracks published on ``topic`` for the frames ``stamps_ns`` as one matrix over the
+    union of their ids: W (2F, P) image positions, V (F, P) visibility (0 where a track is
+    absent from a frame or its position is not finite), ids (P,) sorted.  A frame without a
+    tracks message has every track invisible."""
+    index = {int(s): i for i, s in enumerate(stamps_ns)}
+    frames: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for m in read_messages(bag):
+        if m.topic.lstrip('/') != topic:
+            continue
+        msg = deserialize(m.raw, m.msgtype)
+        f = index.get(stamp_ns(msg.header))
+        if f is not None:
+            frames[f] = (pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0].astype(np.int64),
+                         pc2.read_fields(msg, ('u', 'v', 'visibility'), np.float64))
+    F = len(stamps_ns)
+    ids = np.unique(np.concatenate([i for i, _ in frames.values()] or
+                                   [np.empty(0, np.int64)]))
+    W, V = np.zeros((2 * F, ids.size)), np.zeros((F, ids.size))
+    for f, (i, cols) in frames.items():
+        c = np.searchsorted(ids, i)
+        ok = np.isfinite(cols[:, :2]).all(1)
+        W[2 * f, c], W[2 * f + 1, c] = np.nan_to_num(cols[:, 0]), np.nan_to_num(cols[:, 1])
+        V[f, c] = np.where(ok, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
+    return W, V, ids
+
+
+def tracker_split(W: np.ndarray, V: np.ndarray, ids: np.ndarray, seq: SynthSequence,
+                  **params: Any) -> dict[str, float]:
+    """Where the tracker costs, on its tracks that ground truth knows (the same ids): the
+    stream (reconstructor defaults, ``params`` overriding, the sequence's intrinsics) on
+    the tracker's positions and visibility (``trk``), on the true positions with the tracker's
+    visibility (``gt_positions``: the loss left is its missing-data pattern's) and on the
+    tracker's positions with the true visibility (``gt_visibility``: the loss left is its
+    position errors'); the visible observations' error in px (``median_px``, ``p90_px``,
+    ``over_3px``: share over 3 px) and the visible shares of the tracker and the truth."""
+    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    keep = np.array([int(i) in col for i in ids], bool)
+    if keep.sum() < MIN_POINTS:
+        raise ValueError(f'tracker_split: only {int(keep.sum())} tracks match ground truth')
+    gcols = np.array([col[int(i)] for i in ids[keep]])
+    Wt, Vt = W[:, keep], V[:, keep]
+    Wg, Vg = seq.W[:, gcols], seq.V[:, gcols]
+    kid = ids[keep].astype(np.uint32)
+    err = np.hypot(Wt[0::2] - Wg[0::2], Wt[1::2] - Wg[1::2])[Vt >= 0.5]
+
+    def e3d(W_: np.ndarray, V_: np.ndarray) -> float:
+        return score(stream_on_tracks(W_, V_, kid, seq.K, **params), seq).summary()['e3d']
+    return {'trk': e3d(Wt, Vt), 'gt_positions': e3d(Wg, Vt), 'gt_visibility': e3d(Wt, Vg),
+            'median_px': float(np.median(err)) if err.size else float('nan'),
+            'p90_px': float(np.percentile(err, 90)) if err.size else float('nan'),
+            'over_3px': float((err > 3).mean()) if err.size else float('nan'),
+            'visible_tracker': float((Vt >= 0.5).mean()),
+            'visible_truth': float((Vg >= 0.5).mean())}
+
+
 def _cloud(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     """(X (n, 3) with NaNs kept, track_id (n,)) of a published cloud."""
     return (pc2.read_xyz(msg, skip_nans=False),

@@ -153,3 +153,27 @@ def test_errors_name_the_file(run, capsys, tmp_path):
     # an input bag: no nrsfm/points to score
     code, _, err = evaluate(capsys, root / 'in', '--ground-truth', gt)
     one_error_line(code, err, 'nrsfm/points')
+
+
+def test_read_tracks_and_tracker_split(run):
+    """The tracker's published tracks as one (W, V) over their ids, and the split of its cost:
+    fed the ground truth itself, the three reconstructions are the same and the pixel error 0;
+    fed the tracker's tracks, its position errors are measured against the truth."""
+    from nrsfm_ros.evaluation import read_tracks, tracker_split
+    root, seq = run
+    W, V, ids = read_tracks(root / 'out', seq.stamps_ns)
+    F = seq.stamps_ns.size
+    assert W.shape == (2 * F, ids.size) and V.shape == (F, ids.size)
+    assert (np.diff(ids) > 0).all() and 0 <= V.min() and V.max() <= 1
+    assert (V[0] > 0.5).mean() > 0.9                  # the reference frame sees its tracks
+    assert np.isin(ids, seq.track_ids.astype(np.int64)).mean() > 0.5
+    truth = tracker_split(seq.W, seq.V, seq.track_ids.astype(np.int64), seq)
+    assert truth['trk'] == truth['gt_positions'] == truth['gt_visibility']
+    assert truth['median_px'] == 0 and truth['over_3px'] == 0
+    assert truth['visible_tracker'] == truth['visible_truth']
+    s = tracker_split(W, V, ids, seq)
+    assert 0 < s['median_px'] < 1.0 and s['p90_px'] >= s['median_px']
+    assert 0 <= s['over_3px'] < 0.2 and 0.5 < s['visible_tracker'] <= 1
+    assert all(np.isfinite(s[k]) for k in ('trk', 'gt_positions', 'gt_visibility'))
+    with pytest.raises(ValueError, match='match ground truth'):
+        tracker_split(W[:, :3], V[:, :3], ids[:3] + 10**9, seq)
