@@ -139,9 +139,14 @@ def _parser() -> argparse.ArgumentParser:
                     '--ray=ADDRESS')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
     pr.add_argument('--pipelined', action='store_true',
-                    help='one bag: each stage in its own process, pipelined (the same output '
-                    'messages; on 2 cores about 0.9x the wall time at 320x240, where the '
+                    help='one bag: the stages run at once, each in its own thread (or process: '
+                    '--stage-workers), fed in the one-process order (the same output messages; '
+                    'on 2 cores about 0.9x the wall time at 320x240, where the '
                     "reconstructor's batch solve is the critical path)")
+    pr.add_argument('--stage-workers', choices=('threads', 'processes'), default='threads',
+                    help='with --pipelined: threads (default; nothing pickled, the stages '
+                    'overlap where they release the GIL) or processes (no GIL; each starts '
+                    'and pickles its messages)')
     pr.add_argument('--no-progress', action='store_true')
 
     t = add('topic', 'inspect live topics: list, echo, hz, info')
@@ -518,6 +523,8 @@ def cmd_process(args: argparse.Namespace) -> int:
     if args.ray and Path(args.ray).exists():
         raise CliError(f'--ray {args.ray}: that is a path, not a Ray address; put --ray after '
                        'the bags or write --ray=HOST:PORT')
+    if args.stage_workers != 'threads' and not args.pipelined:
+        raise CliError('--stage-workers: only with --pipelined')
     params = load_params(args.params)
     if len(args.bag) > 1 or args.ray is not None:
         if args.pipelined:
@@ -530,7 +537,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         raise CliError(f'{args.out} exists; choose another --out or delete it')
     report = process_bag(bag, args.out, stages, params,
                          progress=not args.no_progress, copy_inputs=args.copy_inputs,
-                         pipelined=args.pipelined)
+                         pipelined=args.stage_workers if args.pipelined else False)
     d = report.as_dict()
     if args.report:
         write_report(report, args.report)

@@ -111,14 +111,16 @@ def make_processors(stages: Sequence[str], params: Mapping[str, Params] | None =
 def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str] = STAGES,
                 params: Mapping[str, Params] | None = None, storage: str = 'mcap',
                 progress: bool = True, copy_inputs: bool = False,
-                pipelined: bool = False) -> ProcessReport:
+                pipelined: bool | str = False) -> ProcessReport:
     """Run ``stages`` over the bag and write their outputs (and optionally the inputs).
-    ``pipelined``: each stage in its own process (:mod:`.pipelined`; the same outputs, less
-    wall time where cores are free)."""
+    ``pipelined``: each stage in its own process (True or ``'processes'``) or thread
+    (``'threads'``) (:mod:`.pipelined`; the same outputs, less wall time where cores are
+    free)."""
     if pipelined and len(set(stages)) > 1:
         from .pipelined import process_bag_pipelined
         return process_bag_pipelined(in_path, out_path, stages, params, storage, progress,
-                                     copy_inputs)
+                                     copy_inputs, 'processes' if pipelined is True
+                                     else str(pipelined))
     procs = make_processors(stages, params)
     for proc in procs.values():
         proc.stats.timing_window = None          # the report's percentiles cover every call

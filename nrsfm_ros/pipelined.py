@@ -1,4 +1,4 @@
-"""``process`` with its stages in separate processes, so that one bag uses every core.
+"""``process`` with its stages in separate processes or threads, so that one bag uses every core.
 
 Each stage is sequential in time; the stages are not: while the reconstructor solves a batch,
 the tracker goes on tracking and the registrar and scene_flow work on the clouds already
@@ -11,6 +11,15 @@ depth-first walk: an output's consumers run before the next consumer of the mess
 it), so the outputs are the same messages: where a message has consumers further down the
 chain, a stage passes its own outputs of that message on first when it comes before those
 consumers in the message's route list, else after it (:func:`outputs_first`).
+
+``workers='threads'``: the stages run as threads of this process instead, handing the same
+events over in-process queues (nothing pickled, nothing started).  The stages overlap only
+where they release the GIL -- OpenCV's flow, NumPy's BLAS and element-wise loops, the numba
+kernels of ``bmm`` and the planar refinement (compiled ``nogil``) -- which is most of the
+tracker's and much of the reconstructor's time: on 2 cores it overlaps the tracker with the
+reconstructor's batch solve without the processes' start-up and pickling (BENCHMARKS issue 17).
+With threads the per-stage CPU times of the report are the process' CPU time over each call,
+which then includes the other stages' work done meanwhile (wall times are each call's own).
 
 Messages cross the process boundaries pickled (rosbags message classes pickle; NumPy arrays
 go as buffers).  The queues are bounded (``QUEUE_SIZE`` events), so a slow stage holds the
@@ -95,27 +104,60 @@ def _downstream_needs(topic: str, chain: Sequence[str], i: int) -> bool:
 
 
 def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
-                outq: Any) -> None:
-    """A stage process: handle the events routed to it, pass everything on in order.  Ctrl-C
-    is the main process' to handle (it ends the stages), not each stage's."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a forked parent's handler (rclpy) goes
+                outq: Any, stop: threading.Event | None = None) -> None:
+    """A stage process (or thread): handle the events routed to it, pass everything on in
+    order.  Ctrl-C is the main process' to handle (it ends the stages), not each stage's."""
+    threaded = threading.current_thread() is not threading.main_thread()
+    if not threaded:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a forked parent's handler (rclpy) goes
     proc = make_processors([stage], {stage: params} if params is not None else None)[stage]
     proc.stats.timing_window = None
     i = chain.index(stage)
     kinds = {t: k for t, routes in ROUTES.items() for s, k in routes if s == stage}
     failures: list[dict[str, Any]] = []
-    c0 = time.process_time()
+    cpu = time.thread_time if threaded else time.process_time
+    c0 = cpu()
 
     def put(item: Any) -> None:
-        outq.put(item)
+        if stop is None:
+            outq.put(item)
+            return
+        while not stop.is_set():            # a thread ends when told to (``terminate``)
+            try:
+                outq.put(item, timeout=POLL_S)
+                return
+            except queue.Full:
+                continue
+        raise _Stopped
+
+    def get() -> Any:
+        if stop is None:
+            return inq.get()
+        while not stop.is_set():
+            try:
+                return inq.get(timeout=POLL_S)
+            except queue.Empty:
+                continue
+        raise _Stopped
 
     def outputs_of(outputs: list[Any], stamp: int) -> list[Event]:
         return [Event(t, mt, m, stamp_ns(m.header) if hasattr(m, 'header') else stamp,
                       producer=stage, write=True) for t, mt, m in outputs]
 
+    _stage_loop(stage, proc, chain, kinds, failures, cpu, c0, get, put, outputs_of, i)
+
+
+class _Stopped(Exception):
+    """A stage thread told to end (``_StageThread.terminate``)."""
+
+
+def _stage_loop(stage: str, proc: Any, chain: list[str], kinds: dict[str, str],
+                failures: list[dict[str, Any]], cpu: Any, c0: float, get: Any, put: Any,
+                outputs_of: Any, i: int) -> None:
+    """The body of :func:`_stage_main`."""
     while True:
-        item = inq.get()
+        item = get()
         if isinstance(item, StageDone):
             put(item)
             continue
@@ -137,7 +179,7 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
                 for ev in outputs_of(proc.flush(), 0):
                     put(ev)
             put(StageDone(stage, {k: t.summary() for k, t in proc.stats.timing.items()},
-                          proc.status(), failures, time.process_time() - c0))
+                          proc.status(), failures, cpu() - c0))
             put(END)
             return
         ev: Event = item
@@ -182,6 +224,74 @@ def _context() -> Any:
     return multiprocessing.get_context('spawn')
 
 
+class _StageThread:
+    """A stage as a thread, with the part of ``multiprocessing.Process`` that
+    :func:`process_bag_pipelined` uses: ``exitcode`` None while running, 0 after a normal
+    end, 1 after an exception, -SIGTERM once stopped by ``terminate`` (the stop event every
+    stage thread polls between events)."""
+
+    def __init__(self, target: Any, name: str, daemon: bool, args: tuple,
+                 stop: threading.Event) -> None:
+        self.exitcode: int | None = None
+        self.error: BaseException | None = None
+        self._stop = stop
+
+        def run() -> None:
+            try:
+                target(*args, stop)
+                self.exitcode = 0
+            except _Stopped:
+                self.exitcode = -signal.SIGTERM        # as a terminated process reads
+            except BaseException as err:  # noqa: BLE001 -- reported as the stage dying
+                self.error = err
+                self.exitcode = 1
+        self._thread = threading.Thread(target=run, name=name, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    def is_alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def terminate(self) -> None:
+        """Tell every stage thread to end (they poll between events)."""
+        self._stop.set()
+
+    kill = terminate
+
+
+class _ThreadQueue(queue.Queue):
+    """``queue.Queue`` with the two calls of ``multiprocessing.Queue`` used at the end."""
+
+    def cancel_join_thread(self) -> None:
+        """Nothing to do: no feeder thread."""
+
+    def close(self) -> None:
+        """Nothing to do: no pipe."""
+
+
+class _ThreadContext:
+    """The stand-in for a multiprocessing context when the stages are threads: one stop
+    event for all of them."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+
+    def Process(self, target: Any, name: str, daemon: bool,  # noqa: N802 -- multiprocessing's
+                args: tuple) -> _StageThread:
+        return _StageThread(target, name, daemon, args, self.stop)
+
+    @staticmethod
+    def Queue(maxsize: int) -> _ThreadQueue:  # noqa: N802 -- multiprocessing's name
+        return _ThreadQueue(maxsize)
+
+
+WORKERS = ('processes', 'threads')
+
+
 def _reap(procs: list[Any]) -> None:
     """Wait for the stage processes; one that has not ended is terminated, then killed."""
     for p in procs:
@@ -197,15 +307,20 @@ def _reap(procs: list[Any]) -> None:
 def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
                           stages: Sequence[str] = STAGES,
                           params: Mapping[str, Params] | None = None, storage: str = 'mcap',
-                          progress: bool = True, copy_inputs: bool = False) -> ProcessReport:
-    """:func:`pipeline.process_bag` with one process per stage (module doc): the same outputs
-    and report, in less wall time where there are cores to spare."""
+                          progress: bool = True, copy_inputs: bool = False,
+                          workers: str = 'processes') -> ProcessReport:
+    """:func:`pipeline.process_bag` with one process (``workers='threads'``: one thread) per
+    stage (module doc): the same outputs and report, in less wall time where there are cores
+    to spare."""
+    if workers not in WORKERS:
+        raise ValueError(f'workers={workers!r}: expected one of {WORKERS}')
+    threads = workers == 'threads'
     chain = chain_order(stages)
     make_processors(chain, params)          # parameter errors here, before any process
     report, total = new_report(in_path)
     io_s = report.io_s
     t0, c0 = time.perf_counter(), time.process_time()
-    ctx = _context()
+    ctx: Any = _ThreadContext() if threads else _context()
     queues = [ctx.Queue(QUEUE_SIZE) for _ in range(len(chain) + 1)]
     procs = [ctx.Process(target=_stage_main, name=f'nrsfm-{s}', daemon=True,
                          args=(s, (params or {}).get(s), chain, queues[k], queues[k + 1]))
@@ -302,10 +417,15 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
     if progress:
         sys.stderr.write('\n')
     for s in dict.fromkeys(lost + dead()):
-        code = procs[chain.index(s)].exitcode
+        p = procs[chain.index(s)]
+        if not threads:
+            why = f'the {s} process died (exit code {p.exitcode})'
+        elif p.error is None:
+            why = f'the {s} thread was stopped after another stage failed'
+        else:
+            why = f'the {s} thread failed ({type(p.error).__name__}: {p.error})'
         report.failures.append({'stage': s, 'topic': '', 'stamp_ns': 0,
-                                'error': f'the {s} process died (exit code {code}); the '
-                                         'outputs after it are missing'})
+                                'error': f'{why}; the outputs after it are missing'})
     if writer_error:
         err = writer_error[0]
         report.failures.append({'stage': 'writer', 'topic': '', 'stamp_ns': 0,
@@ -314,7 +434,8 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
     # the reader's (deserialize) and the writer's failures, then each stage's in chain order
     report.failures += [f for s in chain if s in by_stage for f in by_stage[s].failures]
     report.seconds = time.perf_counter() - t0
-    report.cpu_s = time.process_time() - c0 + sum(d.cpu_s for d in done)
+    # threads: this process' CPU time already holds the stages'
+    report.cpu_s = time.process_time() - c0 + (0.0 if threads else sum(d.cpu_s for d in done))
     report.timing = {s: by_stage[s].timing for s in chain if s in by_stage}
     report.status = {s: by_stage[s].status for s in chain
                      if s in by_stage and by_stage[s].status}

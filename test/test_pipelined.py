@@ -1,5 +1,5 @@
-"""`process` with each stage in its own process (nrsfm_ros.pipelined): the same output bag as
-the one-process pipeline, message for message; a dead stage and Ctrl-C end it cleanly."""
+"""`process` with each stage in its own process or thread (nrsfm_ros.pipelined): the same output
+bag as the one-process pipeline, message for message; a dead stage and Ctrl-C end it cleanly."""
 from __future__ import annotations
 
 import multiprocessing
@@ -31,9 +31,11 @@ def _messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
     return out
 
 
-def test_pipelined_writes_the_same_messages_as_one_process(bag, tmp_path):
+@pytest.mark.parametrize('workers', [True, 'threads'])
+def test_pipelined_writes_the_same_messages_as_one_process(bag, tmp_path, workers):
     seq = process_bag(bag, tmp_path / 'seq', progress=False, copy_inputs=True)
-    par = process_bag(bag, tmp_path / 'par', progress=False, copy_inputs=True, pipelined=True)
+    par = process_bag(bag, tmp_path / 'par', progress=False, copy_inputs=True,
+                      pipelined=workers)
     a, b = _messages(tmp_path / 'seq'), _messages(tmp_path / 'par')
     assert set(a) == set(b) and len(a) > 10
     for topic in a:       # per topic the same messages in the same order, byte for byte
@@ -57,6 +59,17 @@ def test_process_cli_pipelined(bag, tmp_path, capsys):
     assert 'nrsfm/points: 24' in out and 'nrsfm/tracks: 24' in out
     import json
     assert set(json.loads(report.read_text())['timing']) == {'tracker', 'reconstructor'}
+
+
+def test_process_cli_pipelined_stage_processes(bag, tmp_path, capsys):
+    from nrsfm_ros.cli import main
+    assert main(['process', str(bag), '--out', str(tmp_path / 'o'), '--pipelined',
+                 '--stage-workers', 'processes', '--pipeline', 'tracker,reconstructor',
+                 '--no-progress']) == 0
+    assert 'nrsfm/points: 24' in capsys.readouterr().out
+    rc = main(['process', str(bag), '--out', str(tmp_path / 'p'), '--stage-workers',
+               'processes'])
+    assert rc != 0 and '--stage-workers: only with --pipelined' in capsys.readouterr().err
 
 
 def test_pipelined_is_for_one_bag(bag, tmp_path, capsys):
@@ -142,3 +155,54 @@ def test_no_fork_from_a_process_with_other_threads(bag, tmp_path, rclpy_context)
         node.destroy_node()
     assert rep.outputs['nrsfm/points'] == 24 and rep.failures == []
     assert not multiprocessing.active_children()
+
+
+def _stage_threads() -> list:
+    import threading
+    return [t for t in threading.enumerate() if t.name.startswith('nrsfm-') and
+            t.name != 'nrsfm-writer']
+
+
+class _Raises(_Dies):
+    """Wraps a processor: an error no processor contains, at its 5th tracks message."""
+
+    def handle(self, kind, msg):
+        if kind == 'tracks':
+            self.n += 1
+            if self.n == 5:
+                raise RuntimeError('stage bug')
+        return self.proc.handle(kind, msg)
+
+
+def test_a_failed_stage_thread_is_reported_and_every_thread_ends(bag, tmp_path, monkeypatch):
+    real = pipelined.make_processors
+
+    def failing(stages, params=None, factory=None):
+        procs = real(stages, params, factory)
+        return {s: _Raises(p) if s == 'reconstructor' else p for s, p in procs.items()}
+    monkeypatch.setattr(pipelined, 'make_processors', failing)
+    rep = process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers='threads')
+    died = [f for f in rep.failures if f['stage'] == 'reconstructor']
+    assert len(died) == 1 and 'thread failed (RuntimeError: stage bug)' in died[0]['error']
+    assert rep.outputs.get('nrsfm/tracks', 0) >= 4
+    assert rep.outputs.get('nrsfm/points', 0) < 24
+    assert _stage_threads() == []
+
+
+def test_ctrl_c_ends_every_stage_thread(bag, tmp_path, monkeypatch):
+    real = pipelined.read_messages
+
+    def interrupted(path, *a, **k):
+        for i, m in enumerate(real(path, *a, **k)):
+            if i == 40:
+                raise KeyboardInterrupt
+            yield m
+    monkeypatch.setattr(pipelined, 'read_messages', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers='threads')
+    assert _stage_threads() == []
+
+
+def test_workers_must_be_named(bag, tmp_path):
+    with pytest.raises(ValueError, match="workers='fibres'"):
+        process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers='fibres')

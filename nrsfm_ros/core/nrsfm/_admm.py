@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def data_step(Z: np.ndarray, U: np.ndarray, RtW: np.ndarray, E: np.ndarray, ev: np.ndarray,
               V: np.ndarray, rho: float, rho_den: float, S: np.ndarray, T: np.ndarray
               ) -> None:
@@ -50,7 +50,7 @@ def data_step(Z: np.ndarray, U: np.ndarray, RtW: np.ndarray, E: np.ndarray, ev: 
             T[f, 2, p] = s2 + u2 * inv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def dual_step(S: np.ndarray, Zn: np.ndarray, Z: np.ndarray, U: np.ndarray, rho: float
               ) -> tuple[float, float]:
     """U += rho (S - Zn) in place; returns the primal residual |S - Zn| and the dual one

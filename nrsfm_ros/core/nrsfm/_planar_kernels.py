@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def final_passes(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray,
                  C: np.ndarray, rest: np.ndarray, h: np.ndarray, robust: float, passes: int,
                  ridge_rel: float) -> tuple[np.ndarray, np.ndarray]:
