@@ -7,6 +7,7 @@ rigid factorisation on the ground-truth tracks.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,16 +28,21 @@ def read_clouds(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['poi
                 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """``{frame: (X (n, 3), track_id (n,))}`` of the clouds on ``topic`` whose stamps are
     frames of the sequence (``stamps_ns``)."""
+    return {f: _cloud(msg) for f, msg in _frame_messages(bag, stamps_ns, topic)}
+
+
+def _frame_messages(bag: str | Path, stamps_ns: np.ndarray, topic: str
+                    ) -> Iterator[tuple[int, Any]]:
+    """(frame, message) of the messages on ``topic`` whose stamps are frames of the sequence
+    (``stamps_ns``)."""
     index = {int(s): i for i, s in enumerate(stamps_ns)}
-    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for m in read_messages(bag):
         if m.topic.lstrip('/') != topic:
             continue
         msg = deserialize(m.raw, m.msgtype)
         f = index.get(stamp_ns(msg.header))
         if f is not None:
-            out[f] = _cloud(msg)
-    return out
+            yield f, msg
 
 
 def read_tracks(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['tracks']
@@ -45,16 +51,9 @@ def read_tracks(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['tra
     union of their ids: W (2F, P) image positions, V (F, P) visibility (0 where a track is
     absent from a frame or its position is not finite), ids (P,) sorted.  A frame without a
     tracks message has every track invisible."""
-    index = {int(s): i for i, s in enumerate(stamps_ns)}
-    frames: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for m in read_messages(bag):
-        if m.topic.lstrip('/') != topic:
-            continue
-        msg = deserialize(m.raw, m.msgtype)
-        f = index.get(stamp_ns(msg.header))
-        if f is not None:
-            frames[f] = (pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0].astype(np.int64),
-                         pc2.read_fields(msg, ('u', 'v', 'visibility'), np.float64))
+    frames = {f: (pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0].astype(np.int64),
+                  pc2.read_fields(msg, ('u', 'v', 'visibility'), np.float64))
+              for f, msg in _frame_messages(bag, stamps_ns, topic)}
     F = len(stamps_ns)
     ids = np.unique(np.concatenate([i for i, _ in frames.values()] or
                                    [np.empty(0, np.int64)]))

@@ -126,7 +126,8 @@ def test_a_dead_stage_is_reported_and_the_run_ends(bag, tmp_path, monkeypatch):
     assert not multiprocessing.active_children()
 
 
-def test_ctrl_c_ends_every_stage_process(bag, tmp_path, monkeypatch):
+@pytest.mark.parametrize('workers', ['processes', 'threads'])
+def test_ctrl_c_ends_every_stage(bag, tmp_path, monkeypatch, workers):
     real = pipelined.read_messages
 
     def interrupted(path, *a, **k):
@@ -136,8 +137,8 @@ def test_ctrl_c_ends_every_stage_process(bag, tmp_path, monkeypatch):
             yield m
     monkeypatch.setattr(pipelined, 'read_messages', interrupted)
     with pytest.raises(KeyboardInterrupt):
-        process_bag_pipelined(bag, tmp_path / 'o', progress=False)
-    assert not multiprocessing.active_children()
+        process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers=workers)
+    assert not multiprocessing.active_children() and _stage_threads() == []
 
 
 def test_no_fork_from_a_process_with_other_threads(bag, tmp_path, rclpy_context):
@@ -186,20 +187,6 @@ def test_a_failed_stage_thread_is_reported_and_every_thread_ends(bag, tmp_path, 
     assert len(died) == 1 and 'thread failed (RuntimeError: stage bug)' in died[0]['error']
     assert rep.outputs.get('nrsfm/tracks', 0) >= 4
     assert rep.outputs.get('nrsfm/points', 0) < 24
-    assert _stage_threads() == []
-
-
-def test_ctrl_c_ends_every_stage_thread(bag, tmp_path, monkeypatch):
-    real = pipelined.read_messages
-
-    def interrupted(path, *a, **k):
-        for i, m in enumerate(real(path, *a, **k)):
-            if i == 40:
-                raise KeyboardInterrupt
-            yield m
-    monkeypatch.setattr(pipelined, 'read_messages', interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers='threads')
     assert _stage_threads() == []
 
 
