@@ -103,6 +103,10 @@ def _downstream_needs(topic: str, chain: Sequence[str], i: int) -> bool:
     return any(s in chain[i + 1:] for s, _ in ROUTES.get(topic, []))
 
 
+class _Stopped(Exception):
+    """A stage thread told to end (``_StageThread.terminate``)."""
+
+
 def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
                 outq: Any, stop: threading.Event | None = None) -> None:
     """A stage process (or thread): handle the events routed to it, pass everything on in
@@ -145,17 +149,6 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
         return [Event(t, mt, m, stamp_ns(m.header) if hasattr(m, 'header') else stamp,
                       producer=stage, write=True) for t, mt, m in outputs]
 
-    _stage_loop(stage, proc, chain, kinds, failures, cpu, c0, get, put, outputs_of, i)
-
-
-class _Stopped(Exception):
-    """A stage thread told to end (``_StageThread.terminate``)."""
-
-
-def _stage_loop(stage: str, proc: Any, chain: list[str], kinds: dict[str, str],
-                failures: list[dict[str, Any]], cpu: Any, c0: float, get: Any, put: Any,
-                outputs_of: Any, i: int) -> None:
-    """The body of :func:`_stage_main`."""
     while True:
         item = get()
         if isinstance(item, StageDone):

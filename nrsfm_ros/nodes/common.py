@@ -41,8 +41,9 @@ SENSOR = qos_profile_sensor_data
 # (sensor-data) input is a camera-rate stream: holding only the newest message keeps the
 # latency at about one processing time when the node cannot keep up (a 30 Hz 640x480 camera
 # into the tracker, bench/bench_overload.py: p50 latency 2981 ms with 64 held, 29x its
-# processing time, 140 ms = 1.25x with 1).  A reliable input is a pipeline stage's output, whose messages all
-# matter and may come in bursts (the reconstructor's batch of 60 clouds at once).
+# processing time, 140 ms = 1.25x with 1).  A reliable input is a pipeline stage's output,
+# whose messages all matter and may come in bursts (the reconstructor's batch of 60 clouds at
+# once).
 AUTO_QUEUE_SENSOR = 1
 AUTO_QUEUE_RELIABLE = 64
 
