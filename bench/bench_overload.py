@@ -42,10 +42,15 @@ def tracker_inputs(size: tuple[int, int], frames: int) -> list:
 
 
 def registrar_inputs(points: int, count: int) -> list:
+    """rclpy PointCloud2 messages of ``bench_registrar_rate``'s waving sheet (the publisher
+    only restamps them)."""
     from bench_registrar_rate import clouds
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
 
     from nrsfm_ros.io.bag import serialize
-    return [serialize(m, 'sensor_msgs/msg/PointCloud2') for m in clouds(points, count)]
+    return [deserialize_message(serialize(m, 'sensor_msgs/msg/PointCloud2'), PointCloud2)
+            for m in clouds(points, count)]
 
 
 def run_row(node: str, queue_size: int, inputs: list, rate: float, seconds: float,
@@ -102,15 +107,9 @@ def run_row(node: str, queue_size: int, inputs: list, rate: float, seconds: floa
                 time.sleep(0.0005)
             stamp = (i + 1) * 10**9 // int(rate)
             msg = inputs[1 + i % (len(inputs) - 1)]
-            if node == 'tracker':
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
-                sent[stamp] = time.monotonic()
-                pub.publish(msg)
-            else:
-                m = deserialise_cloud(msg)
-                m.header.stamp.sec, m.header.stamp.nanosec = divmod(stamp, 10**9)
-                sent[stamp] = time.monotonic()
-                pub.publish(m)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+            sent[stamp] = time.monotonic()
+            pub.publish(msg)
         # let the queue drain: until nothing new arrived for 3 s
         last = -1
         while len(recv) != last:
@@ -132,19 +131,6 @@ def run_row(node: str, queue_size: int, inputs: list, rate: float, seconds: floa
             'processing_p50_ms': round(proc, 1), 'ratio': round(p50 / proc, 2)}
 
 
-_CACHE: dict[int, object] = {}
-
-
-def deserialise_cloud(raw: bytes):
-    """An rclpy PointCloud2 from CDR bytes (cached per input: the publisher only restamps)."""
-    key = id(raw)
-    if key not in _CACHE:
-        from rclpy.serialization import deserialize_message
-        from sensor_msgs.msg import PointCloud2
-        _CACHE[key] = deserialize_message(raw, PointCloud2)
-    return _CACHE[key]
-
-
 def main() -> None:
     p = parser(__doc__)
     p.add_argument('--node', default='tracker', choices=('tracker', 'registrar'))
@@ -154,10 +140,11 @@ def main() -> None:
     p.add_argument('--seconds', type=float, default=12.0)
     p.add_argument('--queue-sizes', default='0,64')
     a = p.parse_args()
+    import os
+
     import rclpy
 
     from nrsfm_ros.live import ensure_loopback_env
-    import os
     os.environ.update(ensure_loopback_env(dict(os.environ)))
     w, h = (int(v) for v in a.size.split('x'))
     inputs = tracker_inputs((w, h), 31) if a.node == 'tracker' else \
