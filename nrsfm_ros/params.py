@@ -178,6 +178,13 @@ class TrackerParams(Params):
                                  'and its previous one moved by a frame-to-frame flow differ '
                                  'by more than this (px; catches a flow drifting off a surface '
                                  'whose occlusion checks still pass; 0: off)')
+    support_radius: int = rule(_MFOF.support_radius, _TRK['support_radius'],
+                               'mfof: the neighbourhood (px of the input image) of the '
+                               'visibility support check (0: off)')
+    support_fraction: float = rule(_MFOF.support_fraction, _TRK['support_fraction'],
+                                   'mfof: a track is reported not visible where less than this '
+                                   'share of its reference neighbourhood is visible (tracks '
+                                   'dragged by an occluder or slid off a surface turning away)')
     predict_offset: bool = rule(_MFOF.predict_offset, None,
                                 'mfof: the data step starts each pixel at its own '
                                 'last position moved by the subspace (off: the smooth subspace '

@@ -259,8 +259,9 @@ class TrackerProcessor(Processor):
 
     def _make_tracker(self) -> ReferenceFlowTracker | MFOFTracker:
         p = self.params
-        if p.downsample > 1:        # stride counts full-image pixels
-            p = replace(p, stride=max(1, p.stride // p.downsample))
+        if p.downsample > 1:        # stride and support_radius count full-image pixels
+            p = replace(p, stride=max(1, p.stride // p.downsample),
+                        support_radius=-(-p.support_radius // p.downsample))
         if p.method == 'mfof':
             return MFOFTracker(p.mfof_config())
         return ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,

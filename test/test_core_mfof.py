@@ -12,6 +12,7 @@ import pytest
 from nrsfm_ros.core.tracking import (MFOFConfig, MFOFTracker, ReferenceFlowTracker,
                                      track_sequence)
 from nrsfm_ros.core.tracking.mfof import contrast_normalise as mfof_contrast
+from nrsfm_ros.core.tracking.mfof import visible_support
 from nrsfm_ros.core.tracking.subspace import fit_basis, fit_coefficients, polynomial_basis
 from nrsfm_ros.io.synth import SynthConfig, generate
 from nrsfm_ros.io.synth_tracks import DeformConfig, generate_deforming
@@ -269,9 +270,11 @@ def test_recapture_keeps_tracks_on_a_face_under_60_deg_camera_motion():
     # measured: last third 1.43 px (chained 3.14 px; recapture_margin=0 3.05 px), all frames
     # 0.92 px (1.46 px), kept 0.81 (0.79); 1.81 px on another machine (the tracker is chaotic
     # on such views: a last-bit difference grows to pixels within ~8 frames), so the bounds sit
-    # between that and the tracker without recapture
+    # between that and the tracker without recapture. The visibility support check publishes
+    # fewer of the truly visible observations as visible (kept 0.82 -> 0.77, with or without
+    # recapture; session 28) and halves the published visible ones over 3 px off (4.3% -> 2.0%)
     assert err[late].mean() < 2.4 and err[late].mean() < 0.75 * chain[late].mean()
-    assert err[1:][V[1:]].mean() < 1.2 and kept > 0.78
+    assert err[1:][V[1:]].mean() < 1.2 and kept > 0.72
 
 
 def test_offset_prediction_keeps_a_strongly_deforming_flag_under_60_deg_camera_motion():
@@ -295,12 +298,16 @@ def test_offset_prediction_keeps_a_strongly_deforming_flag_under_60_deg_camera_m
         err = np.linalg.norm(uv - gt, axis=-1)[1:][V[1:]]
         res[on] = (float(err.mean()), float((vis[1:][V[1:]] > 0.5).mean()))
     chain = np.linalg.norm(_chained(grey, seq.W[:2, ib].T) - gt, axis=-1)[1:][V[1:]].mean()
-    (err, kept), (err_old, _) = res[True], res[False]
+    (err, kept), (err_old, kept_old) = res[True], res[False]
     # measured: 1.51 px, kept 0.82; chained 4.13 px; predict_offset=False 3.11 px, kept 0.71
     # (DIS's output depends on the CPU's SIMD path: 2.47 px without the offset on another
-    # machine; on a third 1.75 px against 2.46 without, chained 4.13: hence 0.8x)
-    print(f'offset {err:.2f} px kept {kept:.2f}; without {err_old:.2f}; chained {chain:.2f}')
-    assert err < 2.0 and err < 0.5 * chain and err < 0.8 * err_old and kept > 0.78
+    # machine; on a third 1.75 px against 2.46 without, chained 4.13: hence 0.8x). With the
+    # visibility support check (session 28): 1.66-1.90 px, kept 0.74-0.75; without the offset
+    # 4.44 px, kept 0.61 (the check: kept 0.81 / 0.68 without it)
+    print(f'offset {err:.2f} px kept {kept:.2f}; without {err_old:.2f} kept {kept_old:.2f}; '
+          f'chained {chain:.2f}')
+    assert err < 2.0 and err < 0.5 * chain and err < 0.8 * err_old
+    assert kept > 0.7 and kept > kept_old + 0.08
 
 
 def test_mfof_rejects_bad_input():
@@ -368,3 +375,51 @@ def test_chained_check_flags_tracks_that_leave_the_frame_to_frame_chain():
     back = on._chain_check(mfof_contrast(grey4), nxt)
     assert on.chain_rejected <= 0.05 * nxt.ids.size
     assert (back.visibility[moved & inner] > 0.5).mean() > 0.9
+
+
+def test_visible_support_is_the_visible_share_of_the_mask_around_each_pixel():
+    mask = np.ones((12, 12), bool)
+    mask[:, 8:] = False                      # pixels off the mask never count
+    vis = np.zeros((12, 12), bool)
+    vis[5, 5] = True
+    vis[:, 10] = True                        # visible but off the mask
+    share = visible_support(vis, mask, 1)
+    assert share[5, 5] == pytest.approx(1 / 9) and share[4, 4] == pytest.approx(1 / 9)
+    assert share[0, 0] == 0.0 and share[5, 10] == 0.0      # no mask pixel near: 0
+    assert share[5, 8] == pytest.approx(0.0)
+    vis[:] = True
+    share = visible_support(vis, mask, 2)
+    assert share[:, :8].min() == 1.0          # clipped windows at the border count their own
+    assert share[:, 11].max() == 0.0
+
+
+def test_visibility_support_drops_tracks_dragged_by_an_occluder():
+    """``support_radius``: on a rendered flag turning 60 deg with a disc sweeping across, most
+    observations reported visible but more than 3 px off the truth sit among occluded
+    neighbours (dragged by the disc or slid off the surface): the support check reports at
+    least half of them not visible, at a cost of under 10% of the true visible observations
+    kept within 3 px."""
+    seq = generate(SynthConfig(surface='flag', width=256, height=192, frames=40,
+                               camera_motion_deg=60, amplitude=2, occluder=True))
+    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in seq.images]
+
+    def shares(radius: int) -> tuple[float, float]:
+        tracker = MFOFTracker(MFOFConfig(support_radius=radius))
+        bad = good = kept = truth = 0
+        for f, g in enumerate(grey):
+            fr = tracker.step(g)
+            k = np.array([col.get(int(i), -1) for i in fr.ids])
+            ok = k >= 0
+            e = np.hypot(fr.uv[ok, 0] - seq.W[2 * f, k[ok]],
+                         fr.uv[ok, 1] - seq.W[2 * f + 1, k[ok]])
+            v, t = fr.visibility[ok] >= 0.5, seq.V[f, k[ok]] >= 0.5
+            bad += int((v & (e > 3)).sum())
+            good += int((v & (e <= 3)).sum())
+            kept += int((v & t & (e <= 3)).sum())
+            truth += int(t.sum())
+        return bad / (bad + good), kept / truth
+    bad_off, kept_off = shares(0)
+    bad_on, kept_on = shares(6)
+    assert bad_on < 0.5 * bad_off, (bad_on, bad_off)
+    assert kept_on > 0.9 * kept_off, (kept_on, kept_off)

@@ -66,6 +66,8 @@ PARAM_RULES: dict[str, Rule] = {
     'outlier_px': _non_negative,
     'recapture_margin': _non_negative,
     'chain_check_px': _non_negative,
+    'support_radius': _at_least(0),
+    'support_fraction': _fraction,
     'reselect_fraction': _fraction,
     'collapse_fraction': _fraction,
     'occlusion_threshold': _positive,
