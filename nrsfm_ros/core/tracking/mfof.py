@@ -37,7 +37,8 @@ Per incoming frame (streaming, bounded latency):
    a surface turning away, its FB and ZNCC checks passing on the texture it slid to (rendered
    flag, 60 deg, amplitude 2, occluder: visible observations over 3 px off 9.6% -> 2.9%, the
    true visible ones kept within 3 px 62.4% -> 59.4%); only what is published changes, the
-   subspace and the re-selection test see the unchecked visibility;
+   subspace and the re-selection test see the unchecked visibility (off by default: through
+   the reconstructor a wash, docs/methods.md);
 4. subspace step: the frame's coefficients are fitted to the measured flow by weighted, Huber-
    robust least squares with a temporal prior (the constant-velocity prediction); the output
    fuses data and subspace per pixel ``(w u + beta (s + o)) / (w + beta)``, where o is the
@@ -102,7 +103,7 @@ class MFOFConfig:
     recapture_margin: float = 0.07  # 1 - ZNCC gain for the coarse-to-fine pass to win (0: off)
     predict_offset: bool = True     # the prediction keeps each pixel's offset from the subspace
     chain_check_px: float = 0.0     # px: not visible where the frame-to-frame chain disagrees
-    support_radius: int = 6         # px: the neighbourhood of the visibility support (0: off)
+    support_radius: int = 0         # px: the neighbourhood of the visibility support (0: off)
     support_fraction: float = 0.7   # not visible where less of the neighbourhood is visible
 
     def validate(self) -> None:
