@@ -106,7 +106,7 @@ def refine_G(Phat: np.ndarray, G0: np.ndarray) -> np.ndarray:
 
     # With more basis shapes than the tracks hold, exact tracks leave a flat valley at the
     # round-off floor along which LM creeps (cost 5e-20 -> 2.5e-20 in 7000 evaluations, 6 s):
-    # stop once the cost is below the floor and has not halved for STALL evaluations.
+    # stop once the cost is below _REFINE_FLOOR and has not halved for _REFINE_STALL calls.
     best = {'cost': np.inf, 'x': G0.ravel().copy(), 'ref': np.inf, 'since': 0}
 
     def tracked(g: np.ndarray) -> np.ndarray:
@@ -131,7 +131,7 @@ def refine_G(Phat: np.ndarray, G0: np.ndarray) -> np.ndarray:
     return x.reshape(n, 3)
 
 
-_REFINE_FLOOR = 1e-18       # cost (half the squared, scale-free residuals): cameras ~1e-9
+_REFINE_FLOOR = 1e-18       # cost (half the squared, scale-free residuals)
 _REFINE_STALL = 50
 
 
