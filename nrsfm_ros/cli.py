@@ -48,9 +48,15 @@ def _defaults(fn: Callable[..., Any]) -> dict[str, Any]:
             if p.default is not inspect.Parameter.empty}
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(verb: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``verb``, only that verb's flags are built (the others are
+    listed with their help but take no flags: their defaults import the core, about 1.4 s of a
+    cold start that ``topic list`` or ``replay`` never needed)."""
     p = argparse.ArgumentParser(prog='nrsfm-ros', description=__doc__)
     sub = p.add_subparsers(dest='verb', required=True)
+
+    def wanted(name: str) -> bool:
+        return verb is None or verb == name
 
     def add(name: str, help_: str) -> argparse.ArgumentParser:
         return sub.add_parser(name, help=help_, description=help_,
@@ -153,7 +159,9 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument('action', choices=['list', 'echo', 'hz', 'info'])
     t.add_argument('topic', nargs='?')
     t.add_argument('-n', '--count', type=int, default=1, help='echo: messages to show')
-    t.add_argument('--seconds', type=float, default=3.0, help='hz/echo/list: how long to listen')
+    t.add_argument('--seconds', type=float, default=None,
+                   help='how long to listen (list, hz, info: 3 s; echo: 5 s for the first '
+                   'messages)')
 
     e = add('export', 'write PLY files and PNG renders of the clouds in a bag (perspective, '
             'oblique view; the cloud\'s rgb colours, else shaded by depth)')
@@ -177,18 +185,59 @@ def _parser() -> argparse.ArgumentParser:
                     help='write perspective 3-D renders to DIR: compare_FFF.png (first, middle, '
                     'last frame) with the aligned cloud, the ground truth and a per-point error '
                     'heat map side by side, and a video of every frame')
-    from .render import SHADINGS, VIDEO_FORMATS
-    ev.add_argument('--shading', default=None, choices=SHADINGS,
-                    help='--render: shade the clouds by surface normals (default) or by depth')
-    ev.add_argument('--video', default=None, choices=VIDEO_FORMATS,
-                    help='--render: stream.gif (default), stream.mp4 or no video')
+    if wanted('evaluate'):
+        from .render import SHADINGS, VIDEO_FORMATS
+        ev.add_argument('--shading', default=None, choices=SHADINGS,
+                        help='--render: shade the clouds by surface normals (default) or by '
+                        'depth')
+        ev.add_argument('--video', default=None, choices=VIDEO_FORMATS,
+                        help='--render: stream.gif (default), stream.mp4 or no video')
 
     tr = add('track', 'dense tracks from a folder of images or a video -> tracks.npz (W, V)')
+    if wanted('track'):
+        _track_args(tr)
+
+    rc = add('reconstruct', 'NRSfM on a tracks .npz (W 2FxP, optional V FxP) -> shapes.npz')
+    _reconstruct_args(rc)
+
+    train = add('train-hdmnet', 'HDM-Net: render the training data, train (PyTorch), export '
+                'hdmnet.onnx + hdmnet.json (seed, data, command, commit, metrics)')
+    image = add('reconstruct-image', 'HDM-Net: one image -> a 73 x 73 grid of 3-D points '
+                '(camera frame, m) and its depth image (.npz: points, valid, depth, K)')
+    if wanted('train-hdmnet') or wanted('reconstruct-image'):
+        from .hdmnet_tools import add_image_args, add_train_args
+        add_train_args(train)
+        add_image_args(image)
+
+    rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
+    if wanted('register'):
+        _register_args(rg)
+
+    sf = add('scene-flow', 'RGB-D scene flow (MSF, piecewise rigid) of a folder -> flow.npz: '
+             'flow (F-1, H, W, 3) m from the first frame to each later one, first camera '
+             'frame, NaN where unknown; valid (F-1, H, W)')
+    if wanted('scene-flow'):
+        _scene_flow_args(sf)
+
+    vw = add('view', 'Foxglove WebSocket server: plays a bag, or bridges the live topics '
+             '(without BAG): clouds, images, depth, scene-flow arrows, camera pose')
+    vw.add_argument('bag', nargs='?', default=None,
+                    help='bag to play (default: bridge the live ROS topics)')
+    vw.add_argument('--port', type=int, default=8765, help='WebSocket port (default 8765; 0: '
+                    'any free port)')
+    vw.add_argument('--host', default='127.0.0.1', help='address to serve on (default '
+                    '127.0.0.1)')
+    vw.add_argument('--rate', type=float, default=1.0, help='bag: playback rate (default 1.0)')
+    vw.add_argument('--loop', action='store_true', help='bag: play it again and again')
+    return p
+
+
+def _track_args(tr: argparse.ArgumentParser) -> None:
     tr.add_argument('frames')
     tr.add_argument('--out', required=True)
     # the tracker node's parameters (params.TrackerParams): the same names, defaults and checks
     from .core.tracking import MASKS, PRESETS
-    from .params import TRACKER_METHODS, SceneFlowParams, TrackerParams
+    from .params import TRACKER_METHODS, TrackerParams
     tp = TrackerParams()
     tr.add_argument('--method', default=None, choices=TRACKER_METHODS,
                     help=f'mfof: multi-frame subspace flow + occlusion tensor; reference: DIS '
@@ -206,7 +255,8 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument('--streaming', action='store_true',
                     help='mfof: skip the two-sided batch pass (what the node publishes)')
 
-    rc = add('reconstruct', 'NRSfM on a tracks .npz (W 2FxP, optional V FxP) -> shapes.npz')
+
+def _reconstruct_args(rc: argparse.ArgumentParser) -> None:
     rc.add_argument('tracks')
     rc.add_argument('--method', default='bmm',
                     help='rigid, lowrank, bmm (default: Dai-Li-He cameras + nuclear-norm '
@@ -243,13 +293,8 @@ def _parser() -> argparse.ArgumentParser:
                     'default 0: the plain factorisation)')
     rc.add_argument('--out', required=True)
 
-    from .hdmnet_tools import add_image_args, add_train_args
-    add_train_args(add('train-hdmnet', 'HDM-Net: render the training data, train (PyTorch), '
-                       'export hdmnet.onnx + hdmnet.json (seed, data, command, commit, metrics)'))
-    add_image_args(add('reconstruct-image', 'HDM-Net: one image -> a 73 x 73 grid of 3-D points '
-                       '(camera frame, m) and its depth image (.npz: points, valid, depth, K)'))
 
-    rg = add('register', 'register SOURCE to TARGET (PLY, PCD ascii, .npy or xyz text)')
+def _register_args(rg: argparse.ArgumentParser) -> None:
     rg.add_argument('source')
     rg.add_argument('target')
     rg.add_argument('--method', default='icp',
@@ -276,9 +321,9 @@ def _parser() -> argparse.ArgumentParser:
                     help=f"cpd-nonrigid: field smoothness (default {cpd_d['lam']:g})")
     rg.add_argument('--out', required=True)
 
-    sf = add('scene-flow', 'RGB-D scene flow (MSF, piecewise rigid) of a folder -> flow.npz: '
-             'flow (F-1, H, W, 3) m from the first frame to each later one, first camera '
-             'frame, NaN where unknown; valid (F-1, H, W)')
+
+def _scene_flow_args(sf: argparse.ArgumentParser) -> None:
+    from .params import SceneFlowParams
     sf.add_argument('rgbd', help='folder with color/ (jpg/png), depth/ (16-bit PNG, mm) and '
                     'intrinsics.txt (3x3); frames in name order')
     sf.add_argument('--out', required=True)
@@ -289,21 +334,10 @@ def _parser() -> argparse.ArgumentParser:
                     help='msf/icp: SLIC segments (default: the scene_flow node\'s, '
                     f'{SceneFlowParams().segments})')
 
-    vw = add('view', 'Foxglove WebSocket server: plays a bag, or bridges the live topics '
-             '(without BAG): clouds, images, depth, scene-flow arrows, camera pose')
-    vw.add_argument('bag', nargs='?', default=None,
-                    help='bag to play (default: bridge the live ROS topics)')
-    vw.add_argument('--port', type=int, default=8765, help='WebSocket port (default 8765; 0: '
-                    'any free port)')
-    vw.add_argument('--host', default='127.0.0.1', help='address to serve on (default '
-                    '127.0.0.1)')
-    vw.add_argument('--rate', type=float, default=1.0, help='bag: playback rate (default 1.0)')
-    vw.add_argument('--loop', action='store_true', help='bag: play it again and again')
-    return p
-
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = _parser(argv[0] if argv and argv[0] in VERBS else None).parse_args(argv)
     args.argv = list(argv) if argv is not None else sys.argv[1:]
     try:
         return int(VERBS[args.verb](args) or 0)
@@ -636,6 +670,10 @@ def cmd_topic(args: argparse.Namespace) -> int:
     from .live import echo, hz, topic_types
     if args.action != 'list' and not args.topic:
         raise CliError(f'topic {args.action} needs a TOPIC')
+    if args.seconds is None:
+        args.seconds = 5.0 if args.action == 'echo' else 3.0
+    if not args.seconds > 0:
+        raise CliError(f'--seconds must be > 0 (got {args.seconds})')
     node = _rclpy_node('nrsfm_topic')
     try:
         if args.action == 'list':
@@ -645,7 +683,7 @@ def cmd_topic(args: argparse.Namespace) -> int:
             for name, t in sorted(topic_types(node).items()):
                 print(f'{name} [{t}]')
         elif args.action == 'echo':
-            if echo(node, args.topic, args.count, max(args.seconds, 5.0)) == 0:
+            if echo(node, args.topic, args.count, args.seconds) == 0:
                 raise CliError(f'no message on {args.topic} within {args.seconds} s')
         elif args.action == 'hz':
             r = hz(node, args.topic, args.seconds)

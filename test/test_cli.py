@@ -23,6 +23,28 @@ def test_every_verb_has_help_with_example(verb, capsys):
     assert 'example: nrsfm-ros' in capsys.readouterr().out
 
 
+def test_a_verb_builds_only_its_own_flags_so_a_light_verb_starts_light():
+    # the parser of `topic` must not import the core (params pulls in SciPy and numba: ~1.4 s
+    # of every cold start), and every verb's own parser keeps all of its flags
+    code = ('import sys; from nrsfm_ros.cli import _parser; '
+            "a = _parser('topic').parse_args(['topic', 'list']); "
+            "assert a.seconds is None and a.verb == 'topic'; "
+            "print(sorted(m for m in sys.modules if m.startswith('nrsfm_ros.')))")
+    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert 'nrsfm_ros.params' not in r.stdout and 'nrsfm_ros.core' not in r.stdout, r.stdout
+    import argparse
+
+    from nrsfm_ros.cli import _parser
+
+    def flags(p: argparse.ArgumentParser, verb: str) -> set[str]:
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        return {o for a in sub.choices[verb]._actions for o in a.option_strings}
+    whole = _parser()
+    for verb in EXAMPLES:
+        assert flags(_parser(verb), verb) == flags(whole, verb), verb
+
+
 @pytest.mark.parametrize('args, text', [
     (['reconstruct', 'missing.npz', '--out', 'x.npz'], 'does not exist'),
     (['register', 'a.ply', 'b.ply', '--out', 'x.npz'], 'does not exist'),

@@ -37,7 +37,7 @@ def test_replay_topic_record(tmp_path):
         end = time.monotonic() + 20.0
         while True:
             time.sleep(0.5)
-            r = cli('topic', 'list')
+            r = cli('topic', 'list', '--seconds', '1')
             if '/nrsfm/points' in r.stdout or time.monotonic() > end:
                 break
         assert '/nrsfm/points [sensor_msgs/msg/PointCloud2]' in r.stdout
@@ -50,7 +50,7 @@ def test_replay_topic_record(tmp_path):
         assert 'points=10' in r.stdout and 'fields=x,y,z' in r.stdout
         r = cli('topic', 'info', 'nrsfm/points')
         assert 'publishers: 1' in r.stdout
-        r = cli('record', 'nrsfm/points', '--out', str(tmp_path / 'rec'), '--duration', '5')
+        r = cli('record', 'nrsfm/points', '--out', str(tmp_path / 'rec'), '--duration', '3')
         assert r.returncode == 0
         topics = bag_info(tmp_path / 'rec')['topics']
         assert 'nrsfm/points' in topics, (topics, r.stdout, r.stderr)
@@ -60,25 +60,45 @@ def test_replay_topic_record(tmp_path):
     finally:
         rep.send_signal(signal.SIGINT)
         rep.wait(10)
+    t0 = time.monotonic()
     r = cli('topic', 'echo', 'nothing/here', '--seconds', '1')
     assert r.returncode != 0 and r.stderr.startswith('error:')
+    assert 'not found' in r.stderr and time.monotonic() - t0 < 20   # --seconds is honoured
+
+
+def children(pid: int) -> list[int]:
+    """This launcher's own child processes (never a node of another run)."""
+    out = subprocess.run(['pgrep', '-P', str(pid)], capture_output=True, text=True).stdout
+    return [int(c) for c in out.split()]
+
+
+def wait_until(pred, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def importing_numpy(pid: int) -> bool:
+    try:
+        return '_multiarray_umath' in Path(f'/proc/{pid}/maps').read_text()
+    except OSError:
+        return False
 
 
 def test_graph_launcher_stops_cleanly_and_reports_dead_nodes():
     # Ctrl-C while the nodes are still importing (a cold start can take seconds) is clean too.
-    # The signal goes once the launcher is in its heavy imports (NumPy's core mapped): a fixed
-    # 0.3 s hit a loaded machine's interpreter still in `site`, where Python itself exits 1
+    # The signal goes once every node is in its heavy imports (NumPy's core mapped): a fixed
+    # 0.3 s hit a loaded machine's interpreter still in `site`, where Python itself exits 1.
+    # (The launcher itself imports no NumPy: waiting for it there waited out the deadline and
+    # then hit nodes that had long finished importing.)
     p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes',
                           'scene_flow,registrar'], env=dict(os.environ))
-    maps = Path(f'/proc/{p.pid}/maps')
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and p.poll() is None:
-        try:
-            if '_multiarray_umath' in maps.read_text():
-                break
-        except OSError:
-            pass
-        time.sleep(0.02)
+    assert wait_until(lambda: len(kids := children(p.pid)) == 2
+                      and all(importing_numpy(k) for k in kids), 30)
+    assert p.poll() is None
     p.send_signal(signal.SIGINT)
     assert p.wait(15) == 0
     p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes',
@@ -90,11 +110,7 @@ def test_graph_launcher_stops_cleanly_and_reports_dead_nodes():
     assert p.wait(20) == 0, p.stderr.read()[-2000:]
     p = subprocess.Popen([sys.executable, '-m', 'nrsfm_ros.launch', '--nodes', 'scene_flow',
                           '--max-restarts', '0'], env=dict(os.environ))
-    time.sleep(3.0)
-    # only this launcher's own child, never a node of another run
-    out = subprocess.run(['pgrep', '-P', str(p.pid)], capture_output=True, text=True
-                         ).stdout.split()
-    assert out
-    for pid in out:
-        os.kill(int(pid), signal.SIGKILL)
+    assert wait_until(lambda: children(p.pid), 30)
+    for pid in children(p.pid):
+        os.kill(pid, signal.SIGKILL)
     assert p.wait(15) != 0
