@@ -199,18 +199,16 @@ def test_wave_fraction_sets_the_share_of_flag_states():
     """``wave_fraction`` draws that share of ``wave`` samples; the even split keeps its
     original draw (the shipped model's data stays reproducible); out of range is refused."""
     n = 40
-    fam = {wf: D.make_dataset(D.HDMDataConfig(split='train', samples=n, seed=5, stored=16,
-                                              wave_fraction=wf))['family']
-           for wf in (0.0, 0.5, 0.9, 1.0)}
+    data = {wf: D.make_dataset(D.HDMDataConfig(split='train', samples=n, seed=5, stored=16,
+                                               wave_fraction=wf))
+            for wf in (0.0, 0.5, 0.9, 1.0)}
+    fam = {wf: d['family'] for wf, d in data.items()}
     wave = D.FAMILIES.index('wave')
     assert (fam[0.0] != wave).all() and (fam[1.0] == wave).all()
     assert 0.25 < (fam[0.5] == wave).mean() < 0.75 < (fam[0.9] == wave).mean()
     default = D.make_dataset(D.HDMDataConfig(split='train', samples=n, seed=5, stored=16))
     np.testing.assert_array_equal(default['family'], fam[0.5])
-    np.testing.assert_array_equal(default['images'],
-                                  D.make_dataset(D.HDMDataConfig(split='train', samples=n,
-                                                                 seed=5, stored=16,
-                                                                 wave_fraction=0.5))['images'])
+    np.testing.assert_array_equal(default['images'], data[0.5]['images'])
     for bad in (-0.1, 1.5):
         with pytest.raises(ValueError, match='wave_fraction'):
             D.HDMDataConfig(wave_fraction=bad).validate()
