@@ -7,7 +7,7 @@ import pytest
 
 from nrsfm_ros.cli import main
 from nrsfm_ros.io.synth import (EXTENT, SURFACES, SynthConfig, SynthSequence, _surface,
-                                dense_tracks, generate)
+                                dense_tracks, generate, rasterise)
 
 SMALL = dict(width=96, height=72, frames=10)
 
@@ -35,6 +35,40 @@ def test_every_surface_renders_with_finite_ground_truth(surface):
     np.testing.assert_allclose(seq.W[1], ys, atol=0.25)
     f = seq.K[0, 0]
     np.testing.assert_allclose(seq.W[0::2], f * seq.S[..., 0] / seq.S[..., 2] + seq.K[0, 2])
+
+
+def test_rasterise_keeps_the_nearest_triangle_and_interpolates_its_attributes():
+    """Known answers on a 6 x 5 image: the nearer of two overlapping triangles wins where both
+    cover a pixel (the first one on a tie), attributes are exact at the vertices and linear
+    between them, pixels off every triangle stay empty (inf / NaN), a triangle partly off the
+    image is clipped and one wholly off it is skipped."""
+    uv = np.array([[0, 0], [4, 0], [0, 4],            # A: lower-left half of the 5 x 5 square
+                   [4, 0], [4, 4], [0, 4],            # B: its upper-right half (shares A's edge)
+                   [2, 0], [7, 0], [2, 5],            # C: overlaps A and B, partly off the image
+                   [20, 20], [30, 20], [20, 30]], float)   # D: wholly off the image
+    depth = np.array([2.0, 2, 2, 3, 3, 3, 1, 1, 5, 0.5, 0.5, 0.5])
+    attrs = np.stack([uv[:, 0], uv[:, 1], depth], 1)      # x, y and depth as attributes
+    tris = np.arange(12).reshape(4, 3)
+    zbuf, out = rasterise(uv, depth, attrs, tris, 6, 5)
+    assert zbuf.shape == (5, 6) and out.shape == (5, 6, 3)
+    # C's depth at (x, y): 1 + 4 y / 5; it wins over A (2) and B (3) where nearer
+    ys, xs = np.mgrid[0:5, 0:6]
+    inC = (xs >= 2) & (xs + ys <= 7)
+    zc = 1 + 4 * ys / 5
+    inA, inB = xs + ys <= 4, (xs <= 4) & (xs + ys >= 4)
+    want = np.full((5, 6), np.inf)
+    want[inB] = 3.0
+    want[inA] = 2.0                                   # nearer than B on their shared edge
+    want[inC] = np.minimum(want[inC], zc[inC])
+    np.testing.assert_allclose(zbuf, want, rtol=0, atol=1e-12)
+    hit = np.isfinite(want)
+    np.testing.assert_allclose(out[hit][:, :2], np.stack([xs, ys], -1)[hit], atol=1e-12)
+    np.testing.assert_allclose(out[hit][:, 2], want[hit], atol=1e-12)
+    assert np.isnan(out[~hit]).all() and (~hit).sum() == 2     # (5, 3), (5, 4); D drew nothing
+    # a tie: the same triangle twice with other attributes: the first one drawn wins
+    z2, o2 = rasterise(uv[:3].repeat(2, 0)[[0, 2, 4, 1, 3, 5]], depth[:6] * 0 + 2,
+                       np.array([[1.0]] * 3 + [[7.0]] * 3), np.arange(6).reshape(2, 3), 6, 5)
+    assert set(np.unique(o2[np.isfinite(z2)])) == {1.0}
 
 
 def test_deterministic_per_seed():

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ._raster_kernel import zbuffer
+
 SURFACES = ('flag', 'face', 'sheet', 'sphere')
 SPHERE_RADIUS = 0.3                   # sphere cap: rest radius (m) and polar half-angle
 SPHERE_HALF_ANGLE = np.radians(70.0)  # a 140 deg arc of the sphere
@@ -321,41 +323,15 @@ def rasterise(uv: np.ndarray, depth: np.ndarray, attrs: np.ndarray, tris: np.nda
     (H, W) (inf where empty) and interpolated attributes (H, W, A) (NaN where empty).  Pixel
     centres are at integer coordinates.
     """
-    p = uv[tris]  # T x 3 x 2
-    x0 = np.clip(np.floor(p[..., 0].min(axis=1)).astype(int), 0, width - 1)
-    x1 = np.clip(np.ceil(p[..., 0].max(axis=1)).astype(int), 0, width - 1)
-    y0 = np.clip(np.floor(p[..., 1].min(axis=1)).astype(int), 0, height - 1)
-    y1 = np.clip(np.ceil(p[..., 1].max(axis=1)).astype(int), 0, height - 1)
-    bw, bh = x1 - x0 + 1, y1 - y0 + 1
-    ok = (bw > 0) & (bh > 0) & (p[..., 0].max(1) >= 0) & (p[..., 0].min(1) <= width - 1) \
-        & (p[..., 1].max(1) >= 0) & (p[..., 1].min(1) <= height - 1)
-    tri_idx = np.nonzero(ok)[0]
-    counts = (bw * bh)[tri_idx]
-    ti = np.repeat(tri_idx, counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    px = x0[ti] + local % bw[ti]
-    py = y0[ti] + local // bw[ti]
-    a, b, c = p[ti, 0], p[ti, 1], p[ti, 2]
-    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    area = np.where(np.abs(area) < 1e-12, 1e-12, area)
-    w0 = ((b[:, 0] - px) * (c[:, 1] - py) - (b[:, 1] - py) * (c[:, 0] - px)) / area
-    w1 = ((c[:, 0] - px) * (a[:, 1] - py) - (c[:, 1] - py) * (a[:, 0] - px)) / area
-    w2 = 1.0 - w0 - w1
-    eps = -1e-7
-    inside = (w0 >= eps) & (w1 >= eps) & (w2 >= eps)
-    ti, px, py, w = ti[inside], px[inside], py[inside], np.stack([w0, w1, w2], 1)[inside]
-    vid = tris[ti]
-    z = np.einsum('nk,nk->n', w, depth[vid])
-    pix = py * width + px
-    order = np.lexsort((z, pix))
-    pix_sorted = pix[order]
-    first = np.ones(order.size, bool)
-    first[1:] = pix_sorted[1:] != pix_sorted[:-1]
-    win = order[first]
+    p = np.ascontiguousarray(uv[tris], np.float64)              # T x 3 x 2
     zbuf = np.full(height * width, np.inf)
-    zbuf[pix[win]] = z[win]
+    winner = np.full(height * width, -1, np.int64)
+    weights = np.zeros((height * width, 3))
+    zbuffer(p, np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(tris, np.int64),
+            width, height, zbuf, winner, weights)
+    hit = np.nonzero(winner >= 0)[0]
     out = np.full((height * width, attrs.shape[1]), np.nan)
-    out[pix[win]] = np.einsum('nk,nka->na', w[win], attrs[vid[win]])
+    out[hit] = np.einsum('nk,nka->na', weights[hit], attrs[tris[winner[hit]]])
     return zbuf.reshape(height, width), out.reshape(height, width, attrs.shape[1])
 
 
