@@ -132,8 +132,10 @@ sys.exit(common.spin_node(make, []))
 """
 
 
-def test_node_stuck_after_ctrl_c_exits_in_bounded_time_with_its_stacks():
-    p = subprocess.Popen([sys.executable, '-c', HANGING_NODE], env=dict(os.environ),
+def _ctrl_c(script: str) -> tuple[int, float, str]:
+    """Run ``script`` (a node that prints 'ready'), Ctrl-C it once ready: (exit status,
+    seconds from the signal to the exit, stderr)."""
+    p = subprocess.Popen([sys.executable, '-c', script], env=dict(os.environ),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert p.stdout.readline().strip() == 'ready'
@@ -145,7 +147,11 @@ def test_node_stuck_after_ctrl_c_exits_in_bounded_time_with_its_stacks():
     finally:
         if p.poll() is None:
             p.kill()
-    err = p.stderr.read()
+    return rc, took, p.stderr.read()
+
+
+def test_node_stuck_after_ctrl_c_exits_in_bounded_time_with_its_stacks():
+    rc, took, err = _ctrl_c(HANGING_NODE)
     assert rc == 0, err[-2000:]
     assert took < 10.0
     assert 'warning: node hanging_node still running 1 s after it began to stop' in err
@@ -174,19 +180,7 @@ sys.exit(common.spin_node(make, []))
 
 
 def test_teardown_hung_holding_the_gil_is_cut_short_by_the_alarm_with_stacks():
-    p = subprocess.Popen([sys.executable, '-c', TEARDOWN_HOLDS_GIL], env=dict(os.environ),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert p.stdout.readline().strip() == 'ready'
-        time.sleep(0.5)
-        t0 = time.monotonic()
-        p.send_signal(signal.SIGINT)
-        rc = p.wait(20)
-        took = time.monotonic() - t0
-    finally:
-        if p.poll() is None:
-            p.kill()
-    err = p.stderr.read()
+    rc, took, err = _ctrl_c(TEARDOWN_HOLDS_GIL)
     assert rc == -signal.SIGALRM, err[-2000:]
     assert took < 8.0
     # the Python watchdog could not run; faulthandler's C thread wrote the stacks
