@@ -291,6 +291,9 @@ def _reconstruct_args(rc: argparse.ArgumentParser) -> None:
                     help='rigid: Huber-reweighted fit, entries further than K x the robust '
                     'spread of the reprojection distances count less (tracker outliers; '
                     'default 0: the plain factorisation)')
+    rc.add_argument('--robust-loss', choices=('huber', 'cauchy'), default=None,
+                    help='rigid with --robust: the weights, huber (default) or cauchy '
+                    '(redescending: entries far off count next to nothing)')
     rc.add_argument('--out', required=True)
 
 
@@ -990,6 +993,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if args.method != 'rigid':
             raise CliError(f'--robust applies to --method rigid, not {args.method}')
         kw['robust'] = args.robust
+    if args.robust_loss is not None:
+        if 'robust' not in kw:
+            raise CliError('--robust-loss needs --robust K (the scale of its weights)')
+        kw['loss'] = args.robust_loss
     res = reconstruct(d['W'], d['V'] if 'V' in d.files else None, method=args.method, **kw)
     np.savez_compressed(args.out, S=res.S, R=res.R, scale=res.scale, t=res.t)
     extra = f', compression {res.compression:.1f}x' if res.compression != 1.0 else ''
@@ -1007,7 +1014,8 @@ def _reconstruct_dspr(d: Any, args: argparse.Namespace) -> int:
     from .core.nrsfm.result import check_tracks
     from .core.nrsfm.stream import StreamNRSfM
     for flag, key in (('--rank', 'rank'), ('--camera-model', 'camera_model'),
-                      ('--smooth', 'smooth'), ('--robust', 'robust')):
+                      ('--smooth', 'smooth'), ('--robust', 'robust'),
+                      ('--robust-loss', 'robust_loss')):
         if getattr(args, key) is not None:
             raise CliError(f'{flag} does not apply to --method dspr')
     W, V = check_tracks(d['W'], d['V'] if 'V' in d.files else None)

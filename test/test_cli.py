@@ -226,15 +226,25 @@ def test_reconstruct_robust_rigid_flag(tmp_path, capsys):
     W = (W.reshape(F, 2, P) + 8 * W.std() * bad[:, None] * rng.normal(size=(F, 2, P)))
     np.savez(tmp_path / 't.npz', W=W.reshape(2 * F, P))
     errs = []
-    for flags in ([], ['--robust', '1.5']):
+    for flags in ([], ['--robust', '1.5'], ['--robust', '2', '--robust-loss', 'cauchy']):
         assert main(['reconstruct', str(tmp_path / 't.npz'), '--method', 'rigid', '--out',
                      str(tmp_path / 's.npz')] + flags) == 0
         errs.append(e3d_frobenius(np.load(tmp_path / 's.npz')['S'], S, 'frame', scale=True))
-    assert errs[1] < 0.2 * errs[0]
+    assert errs[1] < 0.2 * errs[0] and errs[2] < 0.2 * errs[1]     # cauchy: redescending
     capsys.readouterr()
     assert main(['reconstruct', str(tmp_path / 't.npz'), '--method', 'bmm', '--robust', '1',
                  '--out', str(tmp_path / 'x.npz')]) != 0
     assert '--robust applies to --method rigid' in capsys.readouterr().err
+    assert main(['reconstruct', str(tmp_path / 't.npz'), '--method', 'rigid', '--robust-loss',
+                 'cauchy', '--out', str(tmp_path / 'x.npz')]) != 0
+    assert '--robust-loss needs --robust K' in capsys.readouterr().err
+    from nrsfm_ros.core.nrsfm.factorization import ROBUST_LOSSES   # the flag's choices
+    for loss in ROBUST_LOSSES:
+        assert main(['reconstruct', str(tmp_path / 't.npz'), '--method', 'rigid', '--robust',
+                     '2', '--robust-loss', loss, '--out', str(tmp_path / 'x.npz')]) == 0
+    with pytest.raises(SystemExit):
+        main(['reconstruct', str(tmp_path / 't.npz'), '--method', 'rigid', '--robust', '2',
+              '--robust-loss', 'tukey', '--out', str(tmp_path / 'x.npz')])
 
 
 def test_reconstruct_every_method_on_tracks_with_visibility(tmp_path, capsys):

@@ -211,21 +211,28 @@ def _rank3_factors(Wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return U * np.sqrt(sv), S_hat
 
 
+ROBUST_LOSSES = ('huber', 'cauchy')
+
+
 def rigid(W: np.ndarray, V: np.ndarray | None = None, robust: float = 0.0,
-          robust_rounds: int = 3) -> NRSfMResult:
+          robust_rounds: int = 3, loss: str = 'huber') -> NRSfMResult:
     """Tomasi-Kanade: rank-3 factorisation + metric upgrade; one rigid shape for all frames.
 
-    ``robust`` > 0: then ``robust_rounds`` rounds of iteratively reweighted least squares with
-    Huber weights min(1, k / r) on every entry's reprojection distance r, k = ``robust`` x the
-    robust spread (1.4826 x median of r over the visible entries, at least 0.5 px / robust), so
-    that gross track errors and the part of a deformation one rigid shape cannot follow pull
-    the shape less.  ``residual_px`` stays the mean distance under the given visibility."""
+    ``robust`` > 0: then ``robust_rounds`` rounds of iteratively reweighted least squares on
+    every entry's reprojection distance r with the weights of ``loss``: ``huber`` min(1, k / r)
+    or ``cauchy`` 1 / (1 + (r / k)^2) (redescending: an entry many k off counts next to
+    nothing), k = ``robust`` x the robust spread (1.4826 x median of r over the visible
+    entries, at least 0.5 px), so that gross track errors and the part of a deformation one
+    rigid shape cannot follow pull the shape less.  ``residual_px`` stays the mean distance
+    under the given visibility."""
     t0 = time.perf_counter()
     W, V = check_tracks(W, V)
     if robust < 0 or not np.isfinite(robust):
         raise ValueError(f'robust: expected a finite value >= 0 (0: off), got {robust}')
     if robust_rounds < 0:
         raise ValueError(f'robust_rounds: expected >= 0, got {robust_rounds}')
+    if loss not in ROBUST_LOSSES:
+        raise ValueError(f'loss: expected one of {ROBUST_LOSSES}, got {loss!r}')
     res = _rigid(W, V)
     if robust == 0 or robust_rounds == 0:
         return replace(res, seconds=time.perf_counter() - t0)
@@ -233,7 +240,9 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None, robust: float = 0.0,
     for _ in range(robust_rounds):
         r = _entry_residuals(res, W)
         k = max(robust * 1.4826 * float(np.median(r[seen])), 0.5)
-        Vw = np.maximum(V * np.minimum(1.0, k / np.maximum(r, 1e-12)), 1e-3 * V)
+        w = np.minimum(1.0, k / np.maximum(r, 1e-12)) if loss == 'huber' else \
+            1.0 / (1.0 + (r / k) ** 2)
+        Vw = np.maximum(V * w, 1e-3 * V)
         res = _rigid(W, Vw)
     r = _entry_residuals(res, W)
     return replace(res, residual_px=float((r * V).sum() / max(V.sum(), 1e-12)),
