@@ -288,9 +288,9 @@ def _reconstruct_args(rc: argparse.ArgumentParser) -> None:
                     help='bmm/cdf: weight of the trajectory prior on the shapes (second '
                     'differences over frames; default 100 with orbit cameras, else 0)')
     rc.add_argument('--robust', type=float, default=None, metavar='K',
-                    help='rigid: Huber-reweighted fit, entries further than K x the robust '
-                    'spread of the reprojection distances count less (tracker outliers; '
-                    'default 0: the plain factorisation)')
+                    help='rigid: reweighted fit (--robust-loss), entries further than K x '
+                    'the robust spread of the reprojection distances count less (tracker '
+                    'outliers; default 0: the plain factorisation)')
     rc.add_argument('--robust-loss', choices=('huber', 'cauchy'), default=None,
                     help='rigid with --robust: the weights, huber (default) or cauchy '
                     '(redescending: entries far off count next to nothing)')
