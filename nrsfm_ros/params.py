@@ -185,6 +185,12 @@ class TrackerParams(Params):
                                    'mfof: a track is reported not visible where less than this '
                                    'share of its reference neighbourhood is visible (tracks '
                                    'dragged by an occluder or slid off a surface turning away)')
+    lk_radius: int = rule(_MFOF.lk_radius, _TRK['lk_radius'],
+                          'mfof: each visible track refined against the reference by affine '
+                          'Lucas-Kanade on a (2r+1)^2 template (px of the tracked image, '
+                          'after downsample; 0: off)')
+    lk_iterations: int = rule(_MFOF.lk_iterations, _TRK['lk_iterations'],
+                              'mfof: Gauss-Newton iterations of the Lucas-Kanade refinement')
     predict_offset: bool = rule(_MFOF.predict_offset, None,
                                 'mfof: the data step starts each pixel at its own '
                                 'last position moved by the subspace (off: the smooth subspace '

@@ -68,6 +68,8 @@ PARAM_RULES: dict[str, Rule] = {
     'chain_check_px': _non_negative,
     'support_radius': _at_least(0),
     'support_fraction': _fraction,
+    'lk_radius': _at_least(0),
+    'lk_iterations': _at_least(1),
     'reselect_fraction': _fraction,
     'collapse_fraction': _fraction,
     'occlusion_threshold': _positive,
