@@ -41,7 +41,8 @@ FRAME_INPUTS = {'tracker': ('camera/image_raw', 'camera/image_raw/compressed'),
                 'scene_flow': ('nrsfm/points', 'camera/image_raw')}
 FRAME_OUTPUTS = {'tracker': 'nrsfm/tracks', 'reconstructor': 'nrsfm/points',
                  'registrar': 'registration/aligned', 'scene_flow': 'scene_flow/points'}
-THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS',
+               'NUMBA_NUM_THREADS')      # numba: the tracker's parallel refinement kernel
 
 
 @dataclass(frozen=True)

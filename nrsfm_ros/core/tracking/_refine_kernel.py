@@ -1,6 +1,6 @@
 """Affine Lucas-Kanade refinement of track positions against the reference (numba).
 
-Per track (in parallel over tracks): the template is the reference image's (2r+1)^2 patch
+Per track (``nogil``: the caller runs slices of the tracks in threads): the template is the reference image's (2r+1)^2 patch
 around the track's reference position; the warp maps a template offset d to ``M [d; 1]`` in
 the frame, starting from the track's position and the local affine map of the dense flow
 (``A = I + grad flow`` at the reference position, central differences over +-2 px).  Inverse
@@ -17,9 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
-
-CHUNK = 64     # tracks per parallel work item
+from numba import njit
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -68,7 +66,7 @@ def _solve6(H: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def refine(ref: np.ndarray, ref_gx: np.ndarray, ref_gy: np.ndarray, frame: np.ndarray,
            flow: np.ndarray, p0: np.ndarray, p: np.ndarray, radius: int, iterations: int,
            max_move: float, out: np.ndarray, zncc: np.ndarray) -> None:
@@ -77,26 +75,22 @@ def refine(ref: np.ndarray, ref_gx: np.ndarray, ref_gy: np.ndarray, frame: np.nd
     like ``frame``; ``ref_gx``, ``ref_gy`` its x and y derivatives); ``flow`` (H, W, 2) the
     dense reference->frame flow (for the local affine start); ``zncc`` (P,) the template's
     correlation with the frame at the kept position."""
-    P = p.shape[0]
     n = (2 * radius + 1) ** 2
-    chunks = (P + CHUNK - 1) // CHUNK
-    for c in prange(chunks):
-        # per chunk of tracks, not per track: numba's allocations cost ~0.1 us each
-        T = np.empty(n)
-        gx = np.empty(n)
-        gy = np.empty(n)
-        dx = np.empty(n)
-        dy = np.empty(n)
-        Iw = np.empty(n)
-        H = np.empty((6, 6))
-        Hf = np.empty((6, 6))
-        sd = np.empty(6)
-        b6 = np.empty(6)
-        dq = np.empty(6)
-        m = np.empty(6)
-        for t in range(c * CHUNK, min(P, (c + 1) * CHUNK)):
-            _refine_one(ref, ref_gx, ref_gy, frame, flow, p0, p, radius, iterations, max_move,
-                        out, zncc, t, T, gx, gy, dx, dy, Iw, H, Hf, sd, b6, dq, m)
+    T = np.empty(n)
+    gx = np.empty(n)
+    gy = np.empty(n)
+    dx = np.empty(n)
+    dy = np.empty(n)
+    Iw = np.empty(n)
+    H = np.empty((6, 6))
+    Hf = np.empty((6, 6))
+    sd = np.empty(6)
+    b6 = np.empty(6)
+    dq = np.empty(6)
+    m = np.empty(6)
+    for t in range(p.shape[0]):
+        _refine_one(ref, ref_gx, ref_gy, frame, flow, p0, p, radius, iterations, max_move, out,
+                    zncc, t, T, gx, gy, dx, dy, Iw, H, Hf, sd, b6, dq, m)
 
 
 @njit(cache=True, nogil=True)

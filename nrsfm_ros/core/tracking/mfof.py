@@ -77,7 +77,9 @@ get new ids ``epoch * H * W + y * W + x``.  Outputs list carried tracks first, t
 """
 from __future__ import annotations
 
+import os
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
 
 import cv2
@@ -90,6 +92,23 @@ from .subspace import GridSampler, fit_basis, fit_coefficients
 
 
 LK_MAX_MOVE = 3.0   # px: an affine Lucas-Kanade refinement moving a track further is dropped
+_LK_POOL: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _lk_threads() -> int:
+    """Threads of the Lucas-Kanade refinement: NUMBA_NUM_THREADS (the fleet's workers set 1),
+    else the CPUs this process may use."""
+    n = os.environ.get('NUMBA_NUM_THREADS', '')
+    return max(1, int(n)) if n.isdigit() else max(1, len(os.sched_getaffinity(0)))
+
+
+def _lk_pool() -> ThreadPoolExecutor:
+    """This process's thread pool of the refinement (made in the process that uses it: a
+    pool's threads do not survive a fork)."""
+    global _LK_POOL
+    if _LK_POOL is None or _LK_POOL[0] != os.getpid():
+        _LK_POOL = (os.getpid(), ThreadPoolExecutor(_lk_threads(), 'mfof-lk'))
+    return _LK_POOL[1]
 
 
 @dataclass(frozen=True)
@@ -233,10 +252,19 @@ class LKReference:
         p = uv[j].astype(np.float64)
         out = np.empty_like(p)
         zncc = np.empty(j.size)
-        _refine_kernel.refine(self.image, self.gx, self.gy, np.asarray(grey_n, np.float32),
-                              np.ascontiguousarray(flow, np.float32),
-                              np.ascontiguousarray(reference_xy[j], np.float64), p,
-                              int(radius), int(iterations), LK_MAX_MOVE, out, zncc)
+        args = (self.image, self.gx, self.gy, np.asarray(grey_n, np.float32),
+                np.ascontiguousarray(flow, np.float32))
+        p0 = np.ascontiguousarray(reference_xy[j], np.float64)
+        parts = np.array_split(np.arange(j.size), _lk_threads() if j.size >= 1024 else 1)
+
+        def run(k: np.ndarray) -> None:
+            a, b = int(k[0]), int(k[-1]) + 1
+            _refine_kernel.refine(*args, p0[a:b], p[a:b], int(radius), int(iterations),
+                                  LK_MAX_MOVE, out[a:b], zncc[a:b])
+        if len(parts) == 1:
+            run(parts[0])
+        else:
+            list(_lk_pool().map(run, parts))
         uv = uv.copy()
         uv[j] = out
         return uv
