@@ -43,7 +43,7 @@ Per incoming frame (streaming, bounded latency):
    robust least squares with a temporal prior (the constant-velocity prediction); the output
    fuses data and subspace per pixel ``(w u + beta (s + o)) / (w + beta)``, where o is the
    pixel's last offset from the subspace, so occluded trajectories are carried by the subspace;
-4b. affine Lucas-Kanade (``lk_radius`` > 0, default 4): each track the frame calls visible is
+4b. affine Lucas-Kanade (``lk_radius`` > 0, off by default): each track the frame calls visible is
    refined against the reference: the (2r+1)^2 template around its reference position, warped
    by an affine map that starts at the track's position with the dense flow's local Jacobian,
    inverse compositional Gauss-Newton (``lk_iterations``) on the contrast-normalised images;
@@ -52,7 +52,8 @@ Per incoming frame (streaming, bounded latency):
    view its positions carry a sub-pixel bias that an affine template removes (rendered face /
    flag 256x192, 60 deg camera motion: median track error 0.38 / 0.22 -> 0.22 / 0.10 px,
    BENCHMARKS issue 12, session 32); only the published positions change, the subspace and
-   the flow keep the fused data;
+   the flow keep the fused data.  Off by default for its cost, ~4.5 us a track on 2 cores
+   (320x240: +20-25 ms a frame; 640x480: +200 ms), against ~1% of end-to-end e3D;
 5. chained check (``chain_check_px`` > 0, off by default): each track's position against its
    previous one moved by a frame-to-frame DIS flow (medium preset); where they differ by more
    than ``chain_check_px`` the track is reported not visible (occlusion 1) and the chain
@@ -138,7 +139,7 @@ class MFOFConfig:
     chain_check_px: float = 0.0     # px: not visible where the frame-to-frame chain disagrees
     support_radius: int = 0         # px: the neighbourhood of the visibility support (0: off)
     support_fraction: float = 0.7   # not visible where less of the neighbourhood is visible
-    lk_radius: int = 4              # px: affine Lucas-Kanade template half-size (0: off)
+    lk_radius: int = 0              # px: affine Lucas-Kanade template half-size (0: off)
     lk_iterations: int = 2          # its inverse compositional Gauss-Newton iterations
 
     def validate(self) -> None:
