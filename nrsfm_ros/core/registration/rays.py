@@ -120,22 +120,28 @@ def ray_pose(source: np.ndarray, target: np.ndarray, threshold: float,
         np.random.default_rng(seed).choice(n, int(max_points), replace=False)
     x, p = source[idx], target[idx]
     d = x / np.linalg.norm(x, axis=1, keepdims=True)
-    # W = (I - d d^T) + depth_weight d d^T weighs a 3-vector error (W^T W: the residual's form)
-    W = np.eye(3)[None] - (1.0 - depth_weight) * d[:, :, None] * d[:, None, :]
+    # W = (I - d d^T) + depth_weight d d^T weighs a 3-vector error (W^T W: the residual's form);
+    # applied as v - c d (d . v), never formed (n, 3, 3)
+    c = 1.0 - depth_weight
     G = np.eye(4) if init is None else invert(np.asarray(init, np.float64))
     it, prev = 0, np.inf
+    A = np.zeros((p.shape[0], 3, 6))
+    A[:, 0, 3] = A[:, 1, 4] = A[:, 2, 5] = 1.0
     for it in range(1, int(max_iterations) + 1):
         y = apply(G, p)
-        e = np.einsum('nij,nj->ni', W, y - x)                   # (n, 3) weighted error
+        v = y - x
+        e = v - c * d * (d * v).sum(1, keepdims=True)            # (n, 3) weighted error W v
         r = np.linalg.norm(e, axis=1)
         cost = ray_cost(r, threshold)
         w = 1.0 / (1.0 + (r / threshold) ** 2)                  # Cauchy IRLS weights
-        # Gauss-Newton on (rotation vector, translation), left-multiplied update of G
-        J = np.empty((p.shape[0], 3, 6))
-        J[:, :, :3] = -np.einsum('nij,njk->nik', W, _skew(y))
-        J[:, :, 3:] = W
-        H = np.einsum('n,nij,nik->jk', w, J, J)
-        g = np.einsum('n,nij,ni->j', w, J, e)
+        # Gauss-Newton on (rotation vector, translation), left-multiplied update of G:
+        # J = W [-skew(y) | I], the normal equations as one BLAS product of the stacked rows
+        A[:, :, :3] = -_skew(y)
+        J = A - c * d[:, :, None] * np.einsum('ni,nij->nj', d, A)[:, None, :]
+        sw = np.sqrt(w)[:, None, None]
+        Js = (J * sw).reshape(-1, 6)
+        H = Js.T @ Js
+        g = Js.T @ (e * sw[:, :, 0]).ravel()
         try:
             step = -np.linalg.solve(H + (1e-9 * np.trace(H) + 1e-300) * np.eye(6), g)
         except np.linalg.LinAlgError:
