@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from .core.nrsfm import _admm, _planar_kernels
-from .core.tracking import _refine_kernel
 
 
 def warm() -> None:
@@ -23,10 +22,6 @@ def warm() -> None:
     T[:, 2] = 1.0
     _planar_kernels.final_passes(np.ones((P, F, 3)), np.ones((P, F)), eye, T, np.ones((F, 2)),
                                  np.zeros((P, 2)), np.zeros((P, F)), 0.01, 2, 1e-9)
-    img = np.zeros((8, 8), np.float32)
-    xy = np.full((1, 2), 4.0)
-    _refine_kernel.refine(img, img, img, img, np.zeros((8, 8, 2), np.float32), xy, xy.copy(),
-                          2, 1, 3.0, np.empty((1, 2)), np.empty(1))
 
 
 warm()
