@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True, inline='always')
+@njit(cache=True, nogil=True)
 def _bilinear(img: np.ndarray, x: float, y: float) -> float:
     """``img`` (H, W) at (x, y), the border replicated."""
     h, w = img.shape
@@ -186,7 +186,7 @@ def _refine_one(ref, ref_gx, ref_gy, frame, flow, p0, p, radius, iterations, max
         zncc[t] = z_end
 
 
-@njit(cache=True, nogil=True, inline='always')
+@njit(cache=True, nogil=True)
 def _zncc(T: np.ndarray, tm: float, tn: float, Iw: np.ndarray) -> float:
     n = T.size
     im = Iw.mean()
