@@ -813,3 +813,27 @@ def test_node_lookahead_contains_a_waiting_clouds_failure(monkeypatch):
     flows = [m for t, _, m in out if t.endswith('scene_flow/points')]
     assert [stamp_ns(m.header) for m in flows] == stamps
     assert proc.stats.failed == 0 and proc.stats.fallbacks == 0, proc.stats.last_error
+
+
+def test_shared_ids_fast_path_equals_intersect1d():
+    """``nrsfm_flow._shared`` / ``_common`` (the window's shared track ids, with a fast path
+    for clouds carrying the same ids) return exactly what ``np.intersect1d`` does: equal id
+    arrays, permuted ones, subsets, disjoint ones, mixed dtypes."""
+    from nrsfm_ros.core.sceneflow.nrsfm_flow import _common, _shared
+    rng = np.random.default_rng(0)
+    ids = rng.permutation(1000).astype(np.uint32)
+    cases = [(ids, ids.copy()), (ids, rng.permutation(ids)), (ids, ids[::3]),
+             (ids[:10], ids[500:520]), (ids.astype(np.int64), ids)]
+    for a, b in cases:
+        want = np.intersect1d(a, b, assume_unique=True, return_indices=True)
+        got = _shared(a, b)
+        for w, g in zip(want, got):
+            np.testing.assert_array_equal(g, w)
+            assert g.dtype == w.dtype
+        rest = [b, a.copy(), b]
+        want_c = a
+        for i in rest:
+            want_c = np.intersect1d(want_c, i, assume_unique=True)
+        got_c = _common(a, rest)
+        np.testing.assert_array_equal(got_c, want_c)
+        assert got_c.dtype == want_c.dtype

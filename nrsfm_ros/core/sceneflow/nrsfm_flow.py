@@ -92,6 +92,26 @@ def _check_cloud(X: np.ndarray, ids: np.ndarray, name: str) -> tuple[np.ndarray,
     return X, ids
 
 
+def _shared(ia: np.ndarray, ib: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.intersect1d(ia, ib, assume_unique=True, return_indices=True)`` (unique ids), the
+    same arrays without the merge sort where the two clouds carry the same ids in the same
+    order (consecutive clouds of one track set: most of a stream)."""
+    if ia.shape == ib.shape and np.array_equal(ia, ib):
+        order = np.argsort(ia, kind='stable')
+        return ia[order], order, order.copy()
+    return np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
+
+
+def _common(first: np.ndarray, rest: Sequence[np.ndarray]) -> np.ndarray:
+    """The sorted ids (unique in each) that ``first`` and every array of ``rest`` share."""
+    common = first
+    for i in rest:
+        if common is first and i.shape == first.shape and np.array_equal(i, first):
+            continue
+        common = np.intersect1d(common, i, assume_unique=True)
+    return np.sort(common) if common is first else common
+
+
 def _number(v: object) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -222,7 +242,7 @@ def known_poses(clouds: Sequence[Cloud], rotations: np.ndarray, assume_checked: 
     t = np.zeros((F, 3))
     for f in range(1, F):
         (Xa, ia), (Xb, ib) = checked[f - 1], checked[f]
-        _, pa, pb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
+        _, pa, pb = _shared(ia, ib)
         if not pa.size:
             t[f] = t[f - 1]
             continue
@@ -244,7 +264,7 @@ def pair_flow(prev: Cloud, cur: Cloud, T_a_b: np.ndarray, dt: float) -> SceneFlo
     """``(T_a_b X_b - X_a) / dt`` on the track ids the two (checked) clouds share."""
     a_X, a_ids = prev
     b_X, b_ids = cur
-    common, ip, ic = np.intersect1d(a_ids, b_ids, assume_unique=True, return_indices=True)
+    common, ip, ic = _shared(a_ids, b_ids)
     a, b = a_X[ip], b_X[ic]
     moved = b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
     return SceneFlow(points=b, velocity=(moved - a) / dt, ids=common.astype(np.uint32),
@@ -264,9 +284,8 @@ def jitter_variance(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray,
     w = len(clouds)
     if w < 3:
         return None
-    common = clouds[0][1]
-    for _, i in clouds[1:]:     # unique ids (checked clouds): no np.unique pass per cloud
-        common = np.intersect1d(common, i, assume_unique=True)
+    # unique ids (checked clouds): no np.unique pass per cloud
+    common = _common(clouds[0][1], [i for _, i in clouds[1:]])
     if common.size > max_points > 0:          # an even subset of the ids: plenty of samples
         common = common[::-(-common.size // max_points)]
     n = common.size
@@ -445,10 +464,8 @@ def centred_flow(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, k: int,
     gain = np.ones(sf.ids.size)
     if w < 3:
         return sf, gain
-    common = sf.ids.astype(np.int64)
-    for f, (_, i) in enumerate(clouds):
-        if f not in (k - 1, k):
-            common = np.intersect1d(common, i, assume_unique=True)
+    common = _common(sf.ids.astype(np.int64),
+                     [i for f, (_, i) in enumerate(clouds) if f not in (k - 1, k)])
     if not common.size:
         return sf, gain
     Y = np.empty((w, common.size, 3))
