@@ -100,7 +100,10 @@ def _lk_threads() -> int:
     """Threads of the Lucas-Kanade refinement: NUMBA_NUM_THREADS (the fleet's workers set 1),
     else the CPUs this process may use."""
     n = os.environ.get('NUMBA_NUM_THREADS', '')
-    return max(1, int(n)) if n.isdigit() else max(1, len(os.sched_getaffinity(0)))
+    if n.isdigit():
+        return max(1, int(n))
+    affinity = getattr(os, 'sched_getaffinity', None)       # Linux; elsewhere every CPU
+    return max(1, len(affinity(0)) if affinity else os.cpu_count() or 1)
 
 
 def _lk_pool() -> ThreadPoolExecutor:
@@ -246,7 +249,8 @@ class LKReference:
         contrast-normalised frame ``grey_n`` against their reference positions
         ``reference_xy`` (P, 2); ``flow`` (H, W, 2): the dense reference->frame flow, whose
         local affine map starts each refinement.  A refinement is kept where it moved the
-        track less than ``LK_MAX_MOVE`` px and raised the template's correlation."""
+        track less than ``LK_MAX_MOVE`` px, stayed in the frame and raised the template's
+        correlation."""
         j = np.flatnonzero(which)
         if j.size == 0:
             return uv
