@@ -160,6 +160,7 @@ CLOUD_INPUTS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 # positions beyond this (pixels or metres) are not sensor data: such clouds are rejected
 MAX_COORDINATE = 1e6
 MAX_POSES = 4096          # scene_flow: object poses kept ahead of their clouds at most
+MAX_HELD = 128            # scene_flow: clouds waiting for their object poses at most
 ALL_POINTS = 10 ** 9      # a registration point budget no cloud reaches (max_points 0: all)
 # visualization_msgs/Marker type and action of the scene-flow arrows
 MARKER_LINE_LIST = 5      # Marker.LINE_LIST: each pair of points is one segment
@@ -935,7 +936,7 @@ class SceneFlowProcessor(Processor):
         self._nb: tuple[np.ndarray, np.ndarray] | None = None   # flow ids, neighbour index
         self._last: tuple[float, float] | None = None   # shrinkage factor, jitter of the last
         self._poses: dict[int, np.ndarray] = {}   # nrsfm/object_pose rotations by stamp
-        self._held: Any = None      # a cloud waiting for its object pose (at most one)
+        self._held: deque = deque()     # clouds waiting for their object poses, in order
         self.ego_motion = {'poses': 0, 'estimated': 0}   # object-frame flows by ego-motion
         self._reset_msf()
 
@@ -961,7 +962,7 @@ class SceneFlowProcessor(Processor):
             self._waiting = 0
             self._weights = None
             self._nb = None
-            self._held = None
+            self._held.clear()
             self._reset_msf()
 
     # ---------------------------------------------------------------- msf (RGB-D)
@@ -1042,7 +1043,7 @@ class SceneFlowProcessor(Processor):
 
     def on_object_pose(self, msg: Any) -> list[Output]:
         """nrsfm/object_pose: the reconstructor's camera of the cloud of the same stamp (kept
-        for the window; a cloud that arrived first and waits for it is processed now)."""
+        for the window; the clouds that arrived first and wait for it are processed now)."""
         if not self._uses_poses():
             return []
         T = transform_matrix(msg)
@@ -1051,10 +1052,18 @@ class SceneFlowProcessor(Processor):
         stamp = stamp_ns(msg.header)
         self._poses[stamp] = T[:3, :3]
         self._forget_poses()
-        held, self._held = self._held, None
-        if held is not None and held[0] > stamp:      # still waiting for its own
-            self._held, held = held, None
-        return [] if held is None else self._cloud_flow(*held)
+        return self._release()
+
+    def _release(self, force: int = 0) -> list[Output]:
+        """The held clouds, in order, whose pose has come (or a later one: theirs will not),
+        and the first ``force`` of them in any case (with the estimate where a pose is
+        missing)."""
+        out: list[Output] = []
+        newest = max(self._poses) if self._poses else None
+        while self._held and (force > 0 or (newest is not None and self._held[0][0] <= newest)):
+            out += self._cloud_flow(*self._held.popleft())
+            force -= 1
+        return out
 
     def _forget_poses(self) -> None:
         """Forget the poses no cloud can still use: those before the oldest cloud of the
@@ -1073,28 +1082,26 @@ class SceneFlowProcessor(Processor):
     def on_points(self, msg: Any) -> list[Output]:
         """A cloud; with ``ego_motion: auto`` while the reconstructor's poses come with its
         clouds (the last cloud had one), a cloud whose pose has not arrived yet (the two
-        topics are not ordered over DDS) waits for it until a later pose or the next cloud,
-        which then process it with the estimate."""
+        topics are not ordered over DDS, and the reconstructor's batch mode publishes 60 of
+        each at once) waits for it, and the clouds after it wait behind it, until its pose or
+        a later one arrives; at most ``MAX_HELD`` wait (the first then goes on with the
+        estimate).  Before, the next cloud released a waiting one with the estimate: the live
+        demo's flow came out 0.75 instead of 0.61 in a run where 47 of 59 clouds did."""
         if self.params.method != 'nrsfm':
             return []
         cloud = self._read_cloud(msg)
-        out: list[Output] = []
-        if self._held is not None:              # its pose did not come: estimated
-            held, self._held = self._held, None
-            out += self._cloud_flow(*held)
         stamp = cloud[0]
-        if self._uses_poses() and self._buf and self._buf[-1][0] in self._poses and \
-                stamp not in self._poses and stamp > max(self._poses):
-            self._held = cloud
-            return out
-        return out + self._cloud_flow(*cloud)
+        if self._held or (self._uses_poses() and self._buf and self._buf[-1][0] in self._poses
+                          and stamp not in self._poses and stamp > max(self._poses)):
+            self._held.append(cloud)
+            return self._release(force=len(self._held) - MAX_HELD)
+        return self._cloud_flow(*cloud)
 
     def flush(self) -> list[Output]:
         """End of a stream (or, live, ``idle_flush_s`` without a cloud): the cloud still
         waiting for its pose, with the estimate, and the clouds still waiting for their
         look-ahead, with the clouds there are."""
-        held, self._held = self._held, None
-        out = [] if held is None else self._cloud_flow(*held)
+        out = self._release(force=len(self._held))
         return out + self.flush_waiting()
 
     def _window_rotations(self, stamps: list[int]) -> np.ndarray | None:

@@ -565,10 +565,33 @@ def test_node_keeps_the_poses_of_clouds_not_yet_arrived():
     assert len(proc._poses) <= 2 * 3 + 3          # only the window's
 
 
+def test_node_waits_for_late_poses_behind_a_waiting_cloud():
+    """Live, a burst of clouds can overtake their poses: pose 0, clouds 0-9, then poses
+    1-9.  Every cloud waits behind the first one still missing its pose, so every flow has
+    the reconstructor's cameras (the next cloud used to release a waiting one with the
+    estimate, and every cloud after it went on with the estimate too: 47 of 59 in one live
+    demo run)."""
+    F = 10
+    Sw, P, S = _scene(F=F)
+    ids = np.arange(S.shape[1])
+    fac = RosbagsFactory()
+    proc = SceneFlowProcessor(fac, SceneFlowParams(lookahead=3))
+    stamps = [int(1e9 + f * 1e8) for f in range(F)]
+    out = proc.handle('object_pose', _pose_msg(fac, P[0], stamps[0]))
+    for f in range(F):
+        out += proc.handle('points', _cloud_msg(fac, S[f], ids, stamps[f]))
+    for f in range(1, F):
+        out += proc.handle('object_pose', _pose_msg(fac, P[f], stamps[f]))
+    out += proc.flush()
+    assert [stamp_ns(m.header) for t, _, m in out if t == 'scene_flow/points'] == stamps
+    assert proc.status()['ego_motion_poses'] == str(F - 1)
+    assert 'ego_motion_estimated' not in proc.status()
+
+
 def test_node_estimates_where_a_pose_never_comes_and_when_told():
-    """A cloud whose pose never arrives is released by the next cloud (or the end of the
-    stream) with the estimated ego-motion: no cloud is lost; ``ego_motion: estimate``
-    ignores the poses."""
+    """A cloud whose pose never arrives is released by a later pose (or the end of the
+    stream, or ``MAX_HELD`` clouds waiting behind it) with the estimated ego-motion: no cloud
+    is lost; ``ego_motion: estimate`` ignores the poses."""
     proc, flows, true = _flows_with_poses('cloud first', skip=(3, 5))
     assert sorted(flows) == [int(1e9 + f * 1e8) for f in range(6)]
     st = proc.status()
