@@ -50,13 +50,14 @@ def test_replay_topic_record(tmp_path):
         assert 'points=10' in r.stdout and 'fields=x,y,z' in r.stdout
         r = cli('topic', 'info', 'nrsfm/points')
         assert 'publishers: 1' in r.stdout
-        r = cli('record', 'nrsfm/points', '--out', str(tmp_path / 'rec'), '--duration', '3')
+        # 6 s: discovery comes out of the duration, and took over 3 s once on a loaded machine
+        r = cli('record', 'nrsfm/points', '--out', str(tmp_path / 'rec'), '--duration', '6')
         assert r.returncode == 0
         topics = bag_info(tmp_path / 'rec')['topics']
         assert 'nrsfm/points' in topics, (topics, r.stdout, r.stderr)
         n = topics['nrsfm/points']['count']
         # the duration includes discovery time; what was received is all in the bag
-        assert 1 <= n <= 110 and f'/nrsfm/points: {n} messages' in r.stdout
+        assert 1 <= n <= 130 and f'/nrsfm/points: {n} messages' in r.stdout
     finally:
         rep.send_signal(signal.SIGINT)
         rep.wait(10)
