@@ -540,6 +540,25 @@ def test_node_takes_the_reconstructors_cameras_in_either_order(order):
     assert 'ego_motion_estimated' not in proc.status()
 
 
+def _poses_and_clouds_in_order(F: int, order: list[tuple[str, int]]
+                               ) -> tuple[SceneFlowProcessor, list[int]]:
+    """SceneFlowProcessor (look-ahead 3) fed _scene's F clouds and object poses in ``order``
+    ((kind, frame) pairs), then flushed: asserts one flow per cloud, in stamp order."""
+    _, P, S = _scene(F=F)
+    ids = np.arange(S.shape[1])
+    fac = RosbagsFactory()
+    proc = SceneFlowProcessor(fac, SceneFlowParams(lookahead=3))
+    stamps = [int(1e9 + f * 1e8) for f in range(F)]
+    out = []
+    for kind, f in order:
+        msg = (_pose_msg(fac, P[f], stamps[f]) if kind == 'object_pose' else
+               _cloud_msg(fac, S[f], ids, stamps[f]))
+        out += proc.handle(kind, msg)
+    out += proc.flush()
+    assert [stamp_ns(m.header) for t, _, m in out if t == 'scene_flow/points'] == stamps
+    return proc, stamps
+
+
 def test_node_keeps_the_poses_of_clouds_not_yet_arrived():
     """The reconstructor's batch mode publishes a batch's poses and clouds at once, and the
     cheap pose callbacks can run far ahead of the clouds': all 40 poses first, then the 40
@@ -548,18 +567,8 @@ def test_node_keeps_the_poses_of_clouds_not_yet_arrived():
     live demo fell back on the estimate in one run of three).  Poses no cloud can use any
     more are forgotten."""
     F = 40
-    Sw, P, S = _scene(F=F)
-    ids = np.arange(S.shape[1])
-    fac = RosbagsFactory()
-    proc = SceneFlowProcessor(fac, SceneFlowParams(lookahead=3))
-    stamps = [int(1e9 + f * 1e8) for f in range(F)]
-    out = []
-    for f in range(F):
-        out += proc.handle('object_pose', _pose_msg(fac, P[f], stamps[f]))
-    for f in range(F):
-        out += proc.handle('points', _cloud_msg(fac, S[f], ids, stamps[f]))
-    out += proc.flush()
-    assert [stamp_ns(m.header) for t, _, m in out if t == 'scene_flow/points'] == stamps
+    proc, stamps = _poses_and_clouds_in_order(
+        F, [('object_pose', f) for f in range(F)] + [('points', f) for f in range(F)])
     assert proc.status()['ego_motion_poses'] == str(F - 1)
     assert 'ego_motion_estimated' not in proc.status()
     assert len(proc._poses) <= 2 * 3 + 3          # only the window's
@@ -572,18 +581,9 @@ def test_node_waits_for_late_poses_behind_a_waiting_cloud():
     estimate, and every cloud after it went on with the estimate too: 47 of 59 in one live
     demo run)."""
     F = 10
-    Sw, P, S = _scene(F=F)
-    ids = np.arange(S.shape[1])
-    fac = RosbagsFactory()
-    proc = SceneFlowProcessor(fac, SceneFlowParams(lookahead=3))
-    stamps = [int(1e9 + f * 1e8) for f in range(F)]
-    out = proc.handle('object_pose', _pose_msg(fac, P[0], stamps[0]))
-    for f in range(F):
-        out += proc.handle('points', _cloud_msg(fac, S[f], ids, stamps[f]))
-    for f in range(1, F):
-        out += proc.handle('object_pose', _pose_msg(fac, P[f], stamps[f]))
-    out += proc.flush()
-    assert [stamp_ns(m.header) for t, _, m in out if t == 'scene_flow/points'] == stamps
+    proc, stamps = _poses_and_clouds_in_order(
+        F, [('object_pose', 0)] + [('points', f) for f in range(F)]
+        + [('object_pose', f) for f in range(1, F)])
     assert proc.status()['ego_motion_poses'] == str(F - 1)
     assert 'ego_motion_estimated' not in proc.status()
 
