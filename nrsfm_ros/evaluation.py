@@ -1,7 +1,10 @@
 """End-to-end evaluation against a synthetic sequence's ground truth: what a subscriber receives.
 
 Clouds are matched to ground truth by header stamp (frame) and ``track_id`` (point); a frame
-without a cloud, or with too few matched points, is listed as unscored, never scored.  Each
+without a cloud, or with too few matched points, is listed as unscored, never scored.  Tracks
+of the tracker's later references (ids ``epoch * H * W + y * W + x``, epoch >= 1) are matched
+too where the sequence was rendered in this process: their truth is the surface point their
+pixel saw in the frame where their epoch's ids first appear (``truth_for_clouds``).  Each
 score comes with the trivial baselines on the same frames and points (``core.metrics``), and the
 rigid factorisation on the ground-truth tracks.
 """
@@ -19,7 +22,7 @@ from .core.nrsfm import reconstruct
 from .io import pointcloud2 as pc2
 from .io.bag import deserialize, read_messages
 from .io.msgtypes import stamp_ns
-from .io.synth import SynthConfig, SynthSequence, scene_flow_ground_truth
+from .io.synth import SynthConfig, SynthSequence, pixel_truth, scene_flow_ground_truth
 from .params import ReconstructorParams
 from .processing import TOPICS, make_stream, transform_matrix
 
@@ -128,8 +131,44 @@ def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray,
 MIN_POINTS = 10     # a frame with fewer points matched to ground truth is unscored
 
 
+def truth_for_clouds(clouds: dict[int, tuple[np.ndarray, np.ndarray]], seq: SynthSequence
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The ground truth's ids (P',) and shapes (F, P', 3): the sequence's own tracks (its
+    first frame's pixels) and, where the sequence has its per-pixel surface coordinates, the
+    tracks of the tracker's later references found in ``clouds``: an id ``epoch * H * W + y *
+    W + x`` (epoch >= 1) is the pixel (x, y) of the frame where its epoch's ids first appear
+    (a re-selected reference), and its truth the surface point that pixel saw then
+    (``synth.pixel_truth``; none where it saw the occluder or nothing)."""
+    ids, S = seq.track_ids.astype(np.int64), seq.S
+    if seq.surface_st is None or not clouds:
+        return ids, S
+    F, H, Wd = seq.surface_st.shape[:3]
+    first: dict[int, int] = {}
+    for f in sorted(clouds):
+        if not 0 <= f < F:
+            continue
+        c = np.unique(np.asarray(clouds[f][1]).astype(np.int64))
+        for e in np.unique(c // (H * Wd)):
+            first.setdefault(int(e), f)
+    new = np.unique(np.concatenate([np.asarray(c[1]).astype(np.int64)
+                                    for f, c in clouds.items() if 0 <= f < F]))
+    new = new[new >= H * Wd]
+    if not new.size:
+        return ids, S
+    extra_ids, extra_S = [ids], [S]
+    for e in np.unique(new // (H * Wd)):
+        group = new[new // (H * Wd) == e]
+        pix = group % (H * Wd)
+        X = pixel_truth(seq, first[int(e)], np.stack([pix % Wd, pix // Wd], axis=1))
+        ok = np.isfinite(X[0]).all(axis=1)
+        extra_ids.append(group[ok])
+        extra_S.append(X[:, ok])
+    return np.concatenate(extra_ids), np.concatenate(extra_S, axis=1)
+
+
 def score(clouds: dict[int, tuple[np.ndarray, np.ndarray]], seq: SynthSequence) -> StreamScore:
-    return score_stream(clouds, seq.track_ids, seq.S, min_points=MIN_POINTS)
+    ids, S = truth_for_clouds(clouds, seq)
+    return score_stream(clouds, ids, S, min_points=MIN_POINTS)
 
 
 def depth_reflected_frames(clouds: dict[int, tuple[np.ndarray, np.ndarray]],
@@ -139,15 +178,16 @@ def depth_reflected_frames(clouds: dict[int, tuple[np.ndarray, np.ndarray]],
     reflection, which metric B (Procrustes with reflections, the NRSfM convention) forgives but
     a subscriber of the cloud or of ``nrsfm/depth`` does not -- a concave cap for a convex one,
     a flag turned away from the camera instead of towards it."""
-    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    gt_ids, S = truth_for_clouds(clouds, seq)
+    col = {int(i): k for k, i in enumerate(gt_ids)}
     bad = 0
     for f, (X, ids) in clouds.items():
-        keep = [k for k, i in enumerate(ids) if int(i) in col] if 0 <= f < seq.S.shape[0] \
+        keep = [k for k, i in enumerate(ids) if int(i) in col] if 0 <= f < S.shape[0] \
             else []
         if len(keep) < MIN_POINTS:
             continue
         z = X[keep, 2] - X[keep, 2].mean()
-        g = seq.S[f][[col[int(ids[k])] for k in keep], 2]
+        g = S[f][[col[int(ids[k])] for k in keep], 2]
         bad += float(z @ (g - g.mean())) < 0
     return bad
 

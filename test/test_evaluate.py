@@ -177,3 +177,37 @@ def test_read_tracks_and_tracker_split(run):
     assert all(np.isfinite(s[k]) for k in ('trk', 'gt_positions', 'gt_visibility'))
     with pytest.raises(ValueError, match='match ground truth'):
         tracker_split(W[:, :3], V[:, :3], ids[:3] + 10**9, seq)
+
+
+def test_tracks_of_a_later_reference_are_scored_against_the_pixels_truth():
+    """A stream whose tracker re-selected its reference at frame 5 (new ids ``H * W + y * W +
+    x`` from there on): those frames are scored on the new tracks against the truth of the
+    pixels they started on (``truth_for_clouds``), never left to the few carried ids; a
+    cloud of the new tracks placed wrongly scores badly, and one published with its depths
+    reflected is counted."""
+    from nrsfm_ros.evaluation import depth_reflected_frames, truth_for_clouds
+    from nrsfm_ros.io.synth import SynthConfig, generate, pixel_truth
+    seq = generate(SynthConfig(surface='sphere', width=96, height=72, frames=10,
+                               camera_motion_deg=30.0, amplitude=2.0))
+    H, W_ = 72, 96
+    ys, xs = np.nonzero(np.isfinite(seq.surface_st[5, ..., 0]))
+    ys, xs = ys[::3], xs[::3]
+    new_ids = (H * W_ + ys * W_ + xs).astype(np.uint32)
+    X_new = pixel_truth(seq, 5, np.stack([xs, ys], axis=1))
+    carried = seq.track_ids[:5]                  # too few to score a frame alone
+    clouds = {f: (seq.S[f], seq.track_ids) for f in range(5)}
+    for f in range(5, 10):
+        clouds[f] = (np.concatenate([seq.S[f, :5], X_new[f]]),
+                     np.concatenate([carried, new_ids]))
+    ids, S = truth_for_clouds(clouds, seq)
+    assert ids.size == seq.track_ids.size + new_ids.size
+    good = score(clouds, seq)
+    assert not good.unscored and good.summary()['e3d'] < 1e-6
+    assert (good.matched[5:] == new_ids.size + 5).all()
+    rng = np.random.default_rng(0)
+    wrong = {**clouds, **{f: (clouds[f][0][rng.permutation(new_ids.size + 5)], clouds[f][1])
+                          for f in range(5, 10)}}
+    assert score(wrong, seq).e3d[5:].min() > 0.3
+    mirrored = {**clouds, **{f: (clouds[f][0] * [1, 1, -1], clouds[f][1]) for f in range(5, 10)}}
+    assert depth_reflected_frames(clouds, seq) == 0
+    assert depth_reflected_frames(mirrored, seq) == 5

@@ -7,7 +7,7 @@ import pytest
 
 from nrsfm_ros.cli import main
 from nrsfm_ros.io.synth import (EXTENT, SURFACES, SynthConfig, SynthSequence, _surface,
-                                dense_tracks, generate, rasterise)
+                                dense_tracks, generate, pixel_truth, rasterise)
 
 SMALL = dict(width=96, height=72, frames=10)
 
@@ -132,6 +132,34 @@ def test_occluder_hides_points_only_in_the_middle_and_only_where_drawn():
             cu, cv, rr, _ = occ.occluder[f]
             assert np.all(np.hypot(xx - cu, yy - cv) <= rr + 1e-9)
             assert occ.images[f][changed].std() > 20
+
+
+@pytest.mark.parametrize('surface', SURFACES)
+def test_pixel_truth_of_any_frame_follows_the_surface_point_seen_there(surface):
+    """``pixel_truth``: the pixels of frame 0 that carry ground-truth tracks get exactly
+    those tracks' truth; a pixel of a later frame gets a point that projects onto it in that
+    frame and follows the surface (it moves with the deformation and the camera); pixels off
+    the surface or behind the occluder get NaN; bad frames and pixels are named."""
+    seq = _gen(surface=surface, camera_motion_deg=30.0, occluder=True, amplitude=2.0)
+    W_ = seq.config.width
+    xy0 = np.stack([seq.track_ids % W_, seq.track_ids // W_], axis=1)
+    np.testing.assert_allclose(pixel_truth(seq, 0, xy0), seq.S, atol=1e-6)
+    f = 7
+    ys, xs = np.nonzero(np.isfinite(seq.surface_st[f, ..., 0]))
+    X = pixel_truth(seq, f, np.stack([xs, ys], axis=1))
+    assert np.isfinite(X).all()
+    uv = X[f, :, :2] / X[f, :, 2:] * seq.K[0, 0] + seq.K[:2, 2]
+    off = np.hypot(*(uv - np.stack([xs, ys], axis=1)).T)   # the mesh's linear facets and
+    assert np.median(off) < 0.05 and off.max() < 0.3        # attributes, as for frame 0's
+    np.testing.assert_allclose(X[f, :, 2], seq.depth[f, ys, xs], rtol=2e-3)
+    assert np.linalg.norm(X[0] - X[f], axis=1).mean() > 0.01       # it moved
+    hidden = ~np.isfinite(seq.depth[f]) | (seq.depth[f] == seq.occluder[f, 3])
+    yh, xh = np.nonzero(hidden)
+    assert yh.size and np.isnan(pixel_truth(seq, f, np.stack([xh, yh], axis=1))).all()
+    with pytest.raises(ValueError, match='frame=10'):
+        pixel_truth(seq, 10, xy0[:3])
+    with pytest.raises(ValueError, match='outside'):
+        pixel_truth(seq, 0, [[W_, 0]])
 
 
 @pytest.mark.parametrize('surface', SURFACES)

@@ -108,6 +108,11 @@ class SynthSequence:
     S: np.ndarray               # (F, P, 3) ground truth, camera optical frame, metres
     S_world: np.ndarray         # (F, P, 3) ground truth, world (object) frame
     occluder: np.ndarray | None = None  # (F, 4) disc centre u, v (px), radius (px), depth (m)
+    # (F, H, W, 2) float32: the surface coordinates (s, t) seen at each pixel, NaN off the
+    # surface and behind the occluder (not saved in the npz); with ``phase`` (the deformation's
+    # random phases) they give the truth of any pixel of any frame: ``pixel_truth``
+    surface_st: np.ndarray | None = None
+    phase: np.ndarray | None = None
 
     def npz_dict(self) -> dict[str, np.ndarray]:
         c = self.config
@@ -355,6 +360,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     light /= np.linalg.norm(light)
     images = np.empty((F, H, Wd, 3), np.uint8)
     depth = np.empty((F, H, Wd), np.float32)
+    surface_st = np.empty((F, H, Wd, 2), np.float32)
     zbufs = []
     ref_st = None
     occ_rng = np.random.default_rng([cfg.seed, 0x0CC])  # apart from rng: defaults unchanged
@@ -372,6 +378,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
         attrs = np.stack([s, t, shade], axis=1)
         zbuf, att = rasterise(uv, Xc[:, 2], attrs, tris, Wd, H)
         covered = np.isfinite(zbuf)
+        surface_st[fi] = att[..., :2]
         st = np.nan_to_num(att[..., :2])
         tex = cv2.remap(texture, (st[..., 0] * (texture.shape[1] - 1)).astype(np.float32),
                         (st[..., 1] * (texture.shape[0] - 1)).astype(np.float32),
@@ -390,6 +397,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
             img[ys, xs] = occ_tex[np.rint(tv).astype(int), np.rint(tu).astype(int)]
             zbuf = np.where(on, disc[3], zbuf)
             covered = covered | on
+            surface_st[fi][on] = np.nan
         if cfg.noise > 0:
             img += rng.normal(0, cfg.noise, img.shape)
         images[fi] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -423,7 +431,31 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     stamps = cfg.start_ns + np.rint(np.arange(F) / cfg.fps * 1e9).astype(np.int64)
     return SynthSequence(config=cfg, images=images, depth=depth, K=K, T_camera_world=poses,
                          stamps_ns=stamps, track_ids=ids, W=Wt, V=V, S=S, S_world=Sw,
-                         occluder=occ)
+                         occluder=occ, surface_st=surface_st, phase=phase)
+
+
+def pixel_truth(seq: SynthSequence, frame: int, xy: np.ndarray) -> np.ndarray:
+    """(F, n, 3): the ground truth (camera optical frame, metres) over the whole sequence of
+    the surface points seen at the integer pixels ``xy`` (n, 2) of ``frame`` -- a tracker's
+    track started there -- NaN where that pixel sees no surface (off it, or the occluder)."""
+    if seq.surface_st is None or seq.phase is None:
+        raise ValueError('pixel_truth: the sequence has no surface_st (loaded from an npz?)')
+    cfg = seq.config
+    F, H, Wd = seq.surface_st.shape[:3]
+    if not 0 <= frame < F:
+        raise ValueError(f'pixel_truth: frame={frame} outside 0..{F - 1}')
+    xy = np.asarray(xy, np.intp).reshape(-1, 2)
+    if xy.size and ((xy < 0).any() or (xy[:, 0] >= Wd).any() or (xy[:, 1] >= H).any()):
+        raise ValueError(f'pixel_truth: pixels outside the {Wd}x{H} image')
+    st = seq.surface_st[frame, xy[:, 1], xy[:, 0]].astype(np.float64)
+    ok = np.isfinite(st).all(axis=1)
+    out = np.full((F, xy.shape[0], 3), np.nan)
+    for fi in range(F):
+        Xw = _surface(cfg.surface, st[ok, 0], st[ok, 1],
+                      deformation_time(fi, cfg.fps, cfg.period_frames), cfg.amplitude,
+                      seq.phase)
+        out[fi, ok] = Xw @ seq.T_camera_world[fi, :3, :3].T + seq.T_camera_world[fi, :3, 3]
+    return out
 
 
 def _vertex_normals(X: np.ndarray, tris: np.ndarray) -> np.ndarray:
