@@ -191,6 +191,11 @@ class TrackerParams(Params):
                           'after downsample; 0: off)')
     lk_iterations: int = rule(_MFOF.lk_iterations, _TRK['lk_iterations'],
                               'mfof: Gauss-Newton iterations of the Lucas-Kanade refinement')
+    fusion_gap_px: float = rule(_MFOF.fusion_gap_px, _TRK['fusion_gap_px'],
+                                'mfof: a track is reported not visible where its published '
+                                'position (the data fused with the motion subspace) is more '
+                                'than this from the frame\'s own flow measurement (px of the '
+                                'tracked image; 0: off)')
     predict_offset: bool = rule(_MFOF.predict_offset, None,
                                 'mfof: the data step starts each pixel at its own '
                                 'last position moved by the subspace (off: the smooth subspace '

@@ -300,11 +300,13 @@ def test_offset_prediction_keeps_a_strongly_deforming_flag_under_60_deg_camera_m
     # measured: 1.51 px, kept 0.82; chained 4.13 px; predict_offset=False 3.11 px, kept 0.71
     # (DIS's output depends on the CPU's SIMD path: 2.47 px without the offset on another
     # machine; on a third 1.75 px against 2.46 without, chained 4.13: hence 0.8x; on a fourth,
-    # session 28: 1.66-1.90 px, kept 0.81, against 4.44 px, kept 0.68)
+    # session 28: 1.66-1.90 px, kept 0.81, against 4.44 px, kept 0.68; session 33, another
+    # machine: 1.75 px, kept 0.80 against 0.73 without the fusion gap, 0.77 against 0.68 with
+    # it, the default, which hides some good observations by design)
     print(f'offset {err:.2f} px kept {kept:.2f}; without {err_old:.2f} kept {kept_old:.2f}; '
           f'chained {chain:.2f}')
     assert err < 2.0 and err < 0.5 * chain and err < 0.8 * err_old
-    assert kept > 0.78 and kept > kept_old + 0.08
+    assert kept > 0.75 and kept > kept_old + 0.06
 
 
 def test_mfof_rejects_bad_input():
@@ -424,6 +426,40 @@ def test_visibility_support_drops_tracks_dragged_by_an_occluder():
     bad_on, kept_on = shares(6)
     assert bad_on < 0.5 * bad_off, (bad_on, bad_off)
     assert kept_on > 0.9 * kept_off, (kept_on, kept_off)
+
+
+def test_fusion_gap_hides_published_positions_the_frame_does_not_support():
+    """``fusion_gap_px``: on a rendered cap turning 60 deg with a disc sweeping across, the
+    tracks lost behind the disc are carried on by the motion subspace to where the frame's own
+    flow does not put them, yet pass the FB and ZNCC checks; the gate reports at least 40% of
+    the visible observations over 3 px off not visible, at a cost of under 3% of those within
+    3 px, and leaves the positions and the re-selections as they were."""
+    seq = generate(SynthConfig(surface='sphere', width=256, height=192, frames=40,
+                               camera_motion_deg=60, amplitude=1, occluder=True))
+    col = {int(i): k for k, i in enumerate(seq.track_ids)}
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in seq.images]
+
+    def run(gap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        tracker = MFOFTracker(MFOFConfig(fusion_gap_px=gap))
+        err, vis, uv = [], [], []
+        for f, g in enumerate(grey):
+            fr = tracker.step(g)
+            k = np.array([col.get(int(i), -1) for i in fr.ids])
+            ok = k >= 0
+            err.append(np.hypot(fr.uv[ok, 0] - seq.W[2 * f, k[ok]],
+                                fr.uv[ok, 1] - seq.W[2 * f + 1, k[ok]]))
+            vis.append(fr.visibility[ok] >= 0.5)
+            uv.append(fr.uv)
+        return np.concatenate(err), np.concatenate(vis), np.concatenate(uv), tracker.epoch
+    e, v_off, uv_off, epochs_off = run(0.0)
+    e_on, v_on, uv_on, epochs_on = run(1.0)
+    np.testing.assert_array_equal(uv_on, uv_off)
+    assert epochs_on == epochs_off
+    bad, good = v_off & (e > 3), v_off & (e <= 3)
+    assert bad.sum() > 0.05 * v_off.sum()           # the failure is there to remove
+    assert not (v_on & ~v_off).any()
+    assert (bad & ~v_on).sum() >= 0.4 * bad.sum(), ((bad & ~v_on).sum(), bad.sum())
+    assert (good & ~v_on).sum() < 0.03 * good.sum(), ((good & ~v_on).sum(), good.sum())
 
 
 def _textured(h: int, w: int, seed: int = 0) -> np.ndarray:

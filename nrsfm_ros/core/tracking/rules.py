@@ -70,6 +70,7 @@ PARAM_RULES: dict[str, Rule] = {
     'support_fraction': _fraction,
     'lk_radius': _at_least(0),
     'lk_iterations': _at_least(1),
+    'fusion_gap_px': _non_negative,
     'reselect_fraction': _fraction,
     'collapse_fraction': _fraction,
     'occlusion_threshold': _positive,
