@@ -147,9 +147,9 @@ class MFOFConfig:
     support_radius: int = 0         # px: the neighbourhood of the visibility support (0: off)
     support_fraction: float = 0.7   # not visible where less of the neighbourhood is visible
     lk_radius: int = 0              # px: affine Lucas-Kanade template half-size (0: off)
+    lk_iterations: int = 2          # its inverse compositional Gauss-Newton iterations
     fusion_gap_px: float = 1.0      # px: not visible where the fused position is this far
     #                                 from the frame's flow measurement (0: off)
-    lk_iterations: int = 2          # its inverse compositional Gauss-Newton iterations
 
     def validate(self) -> None:
         """ValueError naming the first field that ``rules.PARAM_RULES`` rejects (the tracker
