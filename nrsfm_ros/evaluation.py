@@ -143,15 +143,14 @@ def truth_for_clouds(clouds: dict[int, tuple[np.ndarray, np.ndarray]], seq: Synt
     if seq.surface_st is None or not clouds:
         return ids, S
     F, H, Wd = seq.surface_st.shape[:3]
-    first: dict[int, int] = {}
-    for f in sorted(clouds):
-        if not 0 <= f < F:
-            continue
+    first: dict[int, int] = {}          # epoch -> the first frame whose cloud holds its ids
+    seen = []
+    for f in sorted(k for k in clouds if 0 <= k < F):
         c = np.unique(np.asarray(clouds[f][1]).astype(np.int64))
+        seen.append(c)
         for e in np.unique(c // (H * Wd)):
             first.setdefault(int(e), f)
-    new = np.unique(np.concatenate([np.asarray(c[1]).astype(np.int64)
-                                    for f, c in clouds.items() if 0 <= f < F]))
+    new = np.unique(np.concatenate(seen)) if seen else np.zeros(0, np.int64)
     new = new[new >= H * Wd]
     if not new.size:
         return ids, S
