@@ -51,16 +51,17 @@ def _frame_messages(bag: str | Path, stamps_ns: np.ndarray, topic: str
 def read_tracks(bag: str | Path, stamps_ns: np.ndarray, topic: str = TOPICS['tracks']
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tracks published on ``topic`` for the frames ``stamps_ns`` as one matrix over the
-    union of their ids: W (2F, P) image positions, V (F, P) visibility (0 where a track is
-    absent from a frame or its position is not finite), ids (P,) sorted.  A frame without a
-    tracks message has every track invisible."""
+    union of their ids: W (2F, P) image positions (NaN where a track is absent from a frame: a
+    later reference's track before that reference, one ended by a re-selection), V (F, P)
+    visibility (0 where a track is absent or its position is not finite), ids (P,) sorted.  A
+    frame without a tracks message has every track absent."""
     frames = {f: (pc2.read_fields(msg, ('track_id',), np.uint32)[:, 0].astype(np.int64),
                   pc2.read_fields(msg, ('u', 'v', 'visibility'), np.float64))
               for f, msg in _frame_messages(bag, stamps_ns, topic)}
     F = len(stamps_ns)
     ids = np.unique(np.concatenate([i for i, _ in frames.values()] or
                                    [np.empty(0, np.int64)]))
-    W, V = np.zeros((2 * F, ids.size)), np.zeros((F, ids.size))
+    W, V = np.full((2 * F, ids.size), np.nan), np.zeros((F, ids.size))
     for f, (i, cols) in frames.items():
         c = np.searchsorted(ids, i)
         ok = np.isfinite(cols[:, :2]).all(1)
@@ -114,14 +115,20 @@ def stream_on_tracks(W: np.ndarray, V: np.ndarray, ids: np.ndarray,
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The streaming reconstructor (``StreamNRSfM``, reconstructor defaults unless given) fed
     the tracks W (2F, P), V (F, P) frame by frame, with the camera intrinsics ``K`` as from
-    CameraInfo (None: none arrived): what it would publish, in image units."""
+    CameraInfo (None: none arrived): what it would publish, in image units.  A track whose
+    position in a frame is NaN (absent there, as ``read_tracks`` gives it) is left out of
+    that frame's message, as the tracker leaves it out: pushed as present-but-hidden, a later
+    reference's track would be published (filled) in the frames before its reference, and
+    ``truth_for_clouds`` would then take its truth from the wrong frame's pixel."""
     stream = make_stream(ReconstructorParams(), **params)
     if K is not None:
         stream.set_intrinsics(float(K[0, 0]), np.asarray(K)[:2, 2])
     out = {}
     F = V.shape[0]
     for f in range(F):
-        for sh in stream.push(ids, W[2 * f:2 * f + 2].T, V[f]):
+        uv = W[2 * f:2 * f + 2].T
+        here = np.isfinite(uv).all(axis=1)
+        for sh in stream.push(ids[here], uv[here], V[f, here]):
             out[sh.index] = (sh.X, sh.ids)
     for sh in stream.flush():
         out[sh.index] = (sh.X, sh.ids)

@@ -155,6 +155,22 @@ def test_depth_reflection_is_consistent_over_the_stream(face):
         assert np.corrcoef(za, zb)[0, 1] > 0.5, f
 
 
+def test_stream_on_tracks_leaves_absent_tracks_out(face):
+    """A track absent from a frame (NaN position, as ``read_tracks`` gives the tracks of a
+    later reference before it) is not pushed there, so no cloud before its first frame holds
+    it; present tracks are reconstructed as before."""
+    d, ids = face
+    W = d['W'].copy()
+    late = ids[::3]
+    W[:2 * 12, late] = np.nan             # these tracks appear at frame 12
+    clouds = stream_on_tracks(W, d['V'], ids, mode='batch', batch_frames=30)
+    assert sorted(clouds) == list(range(30))
+    for f in range(12):
+        assert not np.isin(late, clouds[f][1]).any(), f
+        assert clouds[f][1].size == ids.size - late.size
+    assert np.isin(late, clouds[12][1]).all() and np.isfinite(clouds[12][0]).all()
+
+
 def test_window_stream_recovers_the_face_better_than_flat(face):
     d, ids = face
     sc = score_stream(stream_on_tracks(d['W'], d['V'], ids, mode='window', window=10), ids,
