@@ -171,3 +171,49 @@ def test_stream_refines_from_both_depth_sign_starts_and_keeps_the_better_fit(siz
                               method='planar', batch_frames=frames)
     e = score(clouds, seq).summary()['e3d']
     assert e < bound, e
+
+
+def _depth_corr(a: np.ndarray, b: np.ndarray) -> float:
+    """Correlation of two clouds' centred depths (the same points)."""
+    a, b = a[:, 2] - a[:, 2].mean(), b[:, 2] - b[:, 2].mean()
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+@pytest.mark.parametrize('batch, refined, keeps_own',
+                         [(30, True, True), (30, False, False), (12, True, False)])
+def test_a_refined_batch_keeps_the_sign_its_pinhole_fit_chose(monkeypatch, batch, refined,
+                                                              keeps_own):
+    """A later batch takes its depth sign from the last published frame unless a pinhole fit
+    over at least ``SIGN_FIT_FRAMES`` frames chose it: such a batch keeps the sign of its fit,
+    so a wrong frame at the end of the previous batch (here its depths reversed by hand; on a
+    600-frame 12 deg flag render the last frames of one batch drifted to a reversed relief
+    and the next batch followed them: 60 frames published reflected) does not reflect the
+    next batch; an unrefined or a short batch still follows the last published frame."""
+    from dataclasses import replace
+    from nrsfm_ros.core.nrsfm.stream import SIGN_FIT_FRAMES
+    assert (batch >= SIGN_FIT_FRAMES) == (batch == 30)
+    W, V, S = bending_sheet(frames=2 * batch, side=16)
+    F, P = V.shape
+    ids = np.arange(P)
+    if not refined:
+        monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.refine_planar_pinhole',
+                            lambda res, *a, **k: res)
+    st = StreamNRSfM(mode='batch', method='planar', batch_frames=batch,
+                     projection='perspective')
+    st.set_intrinsics(FOCAL, PRINCIPAL)
+    out = []
+    for f in range(batch):
+        out += st.push(ids, W[2 * f:2 * f + 2].T)
+    assert [sh.index for sh in out] == list(range(batch))
+    last = st._published[-1]
+    wrong = replace(last, X=last.X * np.array([1.0, 1.0, -1.0]))
+    st._published[-1] = wrong
+    for f in range(batch, F):
+        out += st.push(ids, W[2 * f:2 * f + 2].T)
+    out += st.flush()
+    assert [sh.index for sh in out] == list(range(F))
+    assert st.pinhole_refinements == (2 if refined else 0)
+    assert (_depth_corr(out[batch].X, wrong.X) > 0) != keeps_own
+    if keeps_own:   # and the refined batch's own sign is the truth's in every frame
+        assert all(_depth_corr(sh.X, S[sh.index]) > 0.8 for sh in out), str(
+            [round(_depth_corr(sh.X, S[sh.index]), 2) for sh in out])

@@ -83,6 +83,14 @@ DEPTH_RATIO_RANGE = (0.25, 4.0)   # a frame's depth over the stream's reference 
 SIGN_TRACKS = 400         # spva: the steps' depth sign from this many spread tracks (the
 #   flag's and sheet's periodic renders: the same signs as from 1000, 3.5 -> 2.8 ms a frame)
 RATE_FRAMES = 4           # a new batch continues the camera's turn over this many frames
+SIGN_FIT_FRAMES = 30      # a later batch refined under the pinhole camera over at least this many
+#   frames keeps the depth sign of its fit; a shorter or unrefined one takes the last published
+#   frame's (_emit).  Continuity alone let a wrong frame at a batch's end (its shape drifting
+#   to a reversed relief) reflect the whole next batch: 600-frame 12 deg flag render, 95 of 600
+#   frames published reflected, 35 with the fit's sign; 150-frame flag and sheet renders (12
+#   / 30 / 60 deg, amplitude 1 / 2) 456 -> 200 frames of 1800, e3D unchanged; the one short
+#   batch measured, a 20-frame flush of the sheet at 12 deg, was right by continuity (1 frame
+#   reflected) and wrong by its fit (19): BENCHMARKS, issue 12, session 35
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
@@ -288,6 +296,7 @@ class StreamNRSfM:
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
         self.prior: DynamicShapePrior | ShapePrior | None = None   # dspr / spva: the prior
         self._batch_perspective = False               # the last batch solve was perspective
+        self._pinhole_signed = False    # the last batch's depth sign is its pinhole fit's
         self._prior_perspective = False               # spva's prior from a perspective batch
         self._prior_ids = np.empty(0, np.int64)
         self._last_G: np.ndarray | None = None        # the last solve's gauge rotation
@@ -420,6 +429,7 @@ class StreamNRSfM:
                 return _solve_default(W, V, self.method, self.rank, self._intrinsics)
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
+        self._pinhole_signed = False
         if self.projection != 'perspective' or self._intrinsics is None:
             res = solve(W, V)
         else:
@@ -439,7 +449,9 @@ class StreamNRSfM:
             res = perspective_solve(solve_fixed, W, V, *self._intrinsics, weak=weak, warm=warm,
                                     staged=staged)
             if method == 'planar' and res.method == 'planar':
-                res = self._refine_planar(res, W, V)
+                refined = self._refine_planar(res, W, V)
+                self._pinhole_signed = refined is not res and V.shape[0] >= SIGN_FIT_FRAMES
+                res = refined
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method
@@ -531,7 +543,8 @@ class StreamNRSfM:
         pos = {f.index: i for i, f in enumerate(frames)}
         X_all = res.S * res.scale[:, None, None]             # (F, P, 3) image units
         self._flip = np.ones(3)
-        if self._published:
+        signed, self._pinhole_signed = self._pinhole_signed, False     # this solve's only
+        if self._published and not signed:
             self._flip = self._reflection(frames, ids, X_all)
             X_all = X_all * self._flip
         R_all, ratio = self._gauge(frames, res)
