@@ -87,6 +87,22 @@ def test_bad_arguments_name_the_field(kw, field):
         refine_planar_pinhole(res, W, V, args.pop('focal'), PRINCIPAL, **args)
 
 
+def _planar_stream(batch: int) -> StreamNRSfM:
+    """The reconstructor's batch mode with ``planar`` and the camera's intrinsics."""
+    st = StreamNRSfM(mode='batch', method='planar', batch_frames=batch,
+                     projection='perspective')
+    st.set_intrinsics(FOCAL, PRINCIPAL)
+    return st
+
+
+def _push(st: StreamNRSfM, ids: np.ndarray, W: np.ndarray, frames: range) -> list:
+    """The shapes ``st`` publishes while fed the tracks W of ``frames``."""
+    out = []
+    for f in frames:
+        out += st.push(ids, W[2 * f:2 * f + 2].T)
+    return out
+
+
 def test_batch_stream_refines_planar_batches_with_the_camera(monkeypatch):
     """The reconstructor's batch mode with CameraInfo runs the refinement on a planar batch
     (``pinhole_refinements``) and publishes shapes closer to the truth than without it."""
@@ -95,13 +111,8 @@ def test_batch_stream_refines_planar_batches_with_the_camera(monkeypatch):
     ids = np.arange(P)
 
     def run() -> tuple[StreamNRSfM, float]:
-        st = StreamNRSfM(mode='batch', method='planar', batch_frames=F,
-                         projection='perspective')
-        st.set_intrinsics(FOCAL, PRINCIPAL)
-        out = []
-        for f in range(F):
-            out += st.push(ids, W[2 * f:2 * f + 2].T)
-        out += st.flush()
+        st = _planar_stream(F)
+        out = _push(st, ids, W, range(F)) + st.flush()
         assert [sh.index for sh in out] == list(range(F))
         return st, e3d_frobenius(np.stack([sh.X for sh in out]), S, scale=True)
 
@@ -198,19 +209,13 @@ def test_a_refined_batch_keeps_the_sign_its_pinhole_fit_chose(monkeypatch, batch
     if not refined:
         monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.refine_planar_pinhole',
                             lambda res, *a, **k: res)
-    st = StreamNRSfM(mode='batch', method='planar', batch_frames=batch,
-                     projection='perspective')
-    st.set_intrinsics(FOCAL, PRINCIPAL)
-    out = []
-    for f in range(batch):
-        out += st.push(ids, W[2 * f:2 * f + 2].T)
+    st = _planar_stream(batch)
+    out = _push(st, ids, W, range(batch))
     assert [sh.index for sh in out] == list(range(batch))
     last = st._published[-1]
     wrong = replace(last, X=last.X * np.array([1.0, 1.0, -1.0]))
     st._published[-1] = wrong
-    for f in range(batch, F):
-        out += st.push(ids, W[2 * f:2 * f + 2].T)
-    out += st.flush()
+    out += _push(st, ids, W, range(batch, F)) + st.flush()
     assert [sh.index for sh in out] == list(range(F))
     assert st.pinhole_refinements == (2 if refined else 0)
     assert (_depth_corr(out[batch].X, wrong.X) > 0) != keeps_own
