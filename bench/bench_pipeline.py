@@ -33,6 +33,9 @@ A pipeline row scores only the frames and points it published that match ground 
 and track id); its static/flat baselines are recomputed on exactly those points (`static*`).
 ``--periodic N``: every case's deformation repeats with a period of N frames while the camera
 keeps moving (``synth --periodic``; issue 13's recurring states, for ``--modes dspr``).
+With ``--frames`` above the reconstructor's ``batch_frames`` (60), a table gives each row's
+e3D over the first batch's frames and over the later ones (:func:`batch_split`; the static
+baseline on the same points): what a longer stream gets after its first batch solve.
 ``--set name=value``: reconstructor parameters (YAML values, as on the node) for the pipeline
 rows and ``stream(GT)``, e.g. ``--set projection=weak batch_frames=30``.
 ``--perturb N``: each pipeline mode also runs on N perturbed copies of every render (+-1 grey
@@ -212,6 +215,18 @@ def pipeline_runs(seq, bag: Path, out: Path, modes: list[str], rec: Reconstructo
     return tracker_s, runs
 
 
+def batch_split(e3d: np.ndarray, batch: int) -> tuple[float, float]:
+    """Mean e3D (per-frame array, NaN where unscored) over a stream's first ``batch`` frames
+    (its first batch solve) and over the later ones (NaN where there are none): the sweep's
+    60-frame renders are one batch, a user's stream is longer."""
+    e = np.asarray(e3d, np.float64)
+
+    def mean(a: np.ndarray) -> float:
+        a = a[np.isfinite(a)]
+        return float(a.mean()) if a.size else float('nan')
+    return mean(e[:batch]), mean(e[batch:])
+
+
 def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bool,
              work: Path, true_cameras: bool = False,
              rec: ReconstructorParams | None = None, true_depths: bool = False,
@@ -240,8 +255,10 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     if true_depths:
         row['truedepth_stream'] = true_depth_bound(seq)
     gt_clouds = stream_on_tracks(seq.W, seq.V, seq.track_ids, seq.K, **stream_overrides(rec))
-    st = score(gt_clouds, seq).summary()
+    sc = score(gt_clouds, seq)
+    st = sc.summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
+    row['stream_gt_first'], row['stream_gt_later'] = batch_split(sc.e3d, rec.batch_frames)
     row['stream_gt_inverted'] = depth_reflected_frames(gt_clouds, seq)
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
     if case.exists():
@@ -252,8 +269,12 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     outs = []
     for mode in modes:
         clouds, rep, row[f'{mode}_s'] = runs[mode]
-        s = score(clouds, seq).summary()
+        sc = score(clouds, seq)
+        s = sc.summary()
         row[mode], row[f'{mode}_static'] = s['e3d'], s['static']
+        row[f'{mode}_first'], row[f'{mode}_later'] = batch_split(sc.e3d, rec.batch_frames)
+        row[f'{mode}_static_first'], row[f'{mode}_static_later'] = \
+            batch_split(sc.static, rec.batch_frames)
         row[f'{mode}_inverted'] = depth_reflected_frames(clouds, seq)
         if row['occluder']:
             row[f'{mode}_occluded'], row[f'{mode}_visible'] = occluded_split(clouds, seq)
@@ -392,6 +413,17 @@ def main() -> None:
         print()
         table(['surface', 'cam deg', 'amp', 'occl', 'mode', 'e3D', f'perturbed x{a.perturb}: min',
                'median', 'max', 'static'], spread)
+    later = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+              'yes' if r['occluder'] else 'no',
+              f"{f4(r['stream_gt_first'])} / {f4(r['stream_gt_later'])}"]
+             + [f"{f4(r[f'{m}_first'])} / {f4(r[f'{m}_later'])} (static "
+                f"{f4(r[f'{m}_static_first'])} / {f4(r[f'{m}_static_later'])})" for m in modes]
+             for r in rows if r['frames_in'] > rec.batch_frames]
+    if later:
+        print()
+        table(['surface', 'cam deg', 'amp', 'occl',
+               f'stream(GT): first {rec.batch_frames} frames / later']
+              + [f'{m}: first / later (static on its points)' for m in modes], later)
     split = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
               'yes' if r['occluder'] else 'no', f4(r['static']), f4(r['stream_gt']),
               f4(r['split']['trk']), f4(r['split']['gt_positions']),

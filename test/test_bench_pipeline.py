@@ -164,3 +164,14 @@ def test_pipeline_runs_feed_every_mode_the_trackers_tracks(bench, tmp_path):
     assert tracker_s > 0 and sorted(runs) == ['batch', 'online']
     for clouds, rep, seconds in runs.values():
         assert len(clouds) == 12 and seconds > 0 and not rep.failures
+
+
+def test_batch_split_means_the_first_batch_and_the_later_frames_apart(bench):
+    """The first ``batch`` frames against the later ones, unscored (NaN) frames left out; no
+    later frame: NaN."""
+    import numpy as np
+    e = np.array([0.1, np.nan, 0.3, 1.0, np.nan, 3.0])
+    first, later = bench.batch_split(e, 3)
+    assert first == pytest.approx(0.2) and later == pytest.approx(2.0)
+    first, later = bench.batch_split(e[:3], 3)
+    assert first == pytest.approx(0.2) and np.isnan(later)
