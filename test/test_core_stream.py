@@ -171,6 +171,28 @@ def test_stream_on_tracks_leaves_absent_tracks_out(face):
     assert np.isin(late, clouds[12][1]).all() and np.isfinite(clouds[12][0]).all()
 
 
+def test_a_short_last_batch_is_solved_with_the_frames_before_it(face):
+    """The flush of a batch stream (10 frames after a 20-frame batch) is solved together with
+    the published frames before it, which only it publishes: alone, 10 frames of a 30 deg
+    camera sweep see little motion (measured: 0.070 in the stream against 0.189 alone)."""
+    d, ids = face
+
+    def run(start: int) -> tuple[dict, str]:
+        s = StreamNRSfM(mode='batch', batch_frames=20)
+        out = []
+        for f in range(start, 30):
+            out += s.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])
+        out += s.flush()
+        return {sh.index + start: sh for sh in out}, s.last_method
+
+    stream, method = run(0)
+    alone, _ = run(20)
+    assert sorted(stream) == list(range(30)) and method != 'planar'
+    e_stream = np.mean([frame_e3d(stream[f].X, d['S'][f]) for f in range(20, 30)])
+    e_alone = np.mean([frame_e3d(alone[f].X, d['S'][f]) for f in range(20, 30)])
+    assert e_stream < 0.6 * e_alone, (e_stream, e_alone)
+
+
 def test_window_stream_recovers_the_face_better_than_flat(face):
     d, ids = face
     sc = score_stream(stream_on_tracks(d['W'], d['V'], ids, mode='window', window=10), ids,

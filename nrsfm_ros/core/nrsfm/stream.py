@@ -367,6 +367,12 @@ class StreamNRSfM:
         if not self._pending:
             return []
         if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
+            if self.mode == 'batch' and self._published and self.last_method != 'planar':
+                # a short last batch is solved with the frames before it (a full batch, its
+                # published ones as context): alone it sees little camera motion (face 30 deg,
+                # 30-frame flush: 0.155 -> 0.03); planar solves lost with it (flag 60 deg
+                # amplitude 2 0.140 -> 0.228): BENCHMARKS, issue 12, session 35
+                return self._solve_batch(list(self._frames))
             return self._solve_batch(list(self._pending)) \
                 if self.mode in ('batch', 'dspr', 'spva') \
                 else self._solve_window()
