@@ -245,6 +245,11 @@ class ReconstructorParams(Params):
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode; dspr: the '
                              'batch the prior is built from)')
+    batch_context: int = rule(30, _at_least(0), 'batch mode: each batch after the first is '
+                              'solved with up to this many frames before it that share its '
+                              'tracks (published already: context only, for the camera motion '
+                              'before the batch), and the last partial batch with the frames '
+                              'before it up to batch_frames; 0: every batch alone')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     projection: str = rule('perspective', _one_of('perspective', 'weak'),

@@ -404,7 +404,8 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
     """The reconstructor's streaming NRSfM for a parameter set (``overrides`` win)."""
     kw = dict(mode=params.mode, window=params.window, rank=params.rank,
               iterations=params.iterations, method=params.method,
-              batch_frames=params.batch_frames, projection=params.projection,
+              batch_frames=params.batch_frames, batch_context=params.batch_context,
+              projection=params.projection,
               dspr_recurrence_px=params.dspr_recurrence_px, dspr_distinct=params.dspr_distinct,
               dspr_prior_weight=params.dspr_prior_weight,
               spva_prior_frames=params.spva_prior_frames, spva_weighting=params.spva_weighting,

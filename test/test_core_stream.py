@@ -6,6 +6,7 @@ import pytest
 
 from nrsfm_ros.core.depth import depth_image
 from nrsfm_ros.core.metrics import flat_shape, frame_e3d, score_stream
+from nrsfm_ros.core.nrsfm.factorization import rigid
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
 from nrsfm_ros.evaluation import stream_on_tracks
 from nrsfm_ros.io.synth import dense_tracks
@@ -191,6 +192,65 @@ def test_a_short_last_batch_is_solved_with_the_frames_before_it(face):
     e_stream = np.mean([frame_e3d(stream[f].X, d['S'][f]) for f in range(20, 30)])
     e_alone = np.mean([frame_e3d(alone[f].X, d['S'][f]) for f in range(20, 30)])
     assert e_stream < 0.6 * e_alone, (e_stream, e_alone)
+
+
+def _solve_sizes(d: dict, ids_of, frames: int, **kw) -> tuple[list[int], list[int]]:
+    """A batch stream (``kw``) fed ``frames`` frames of ``d``'s tracks under ``ids_of(f)``:
+    the frame count of every batch solve, and the published frame indices."""
+    sizes: list[int] = []
+
+    def solver(W, V, method, rank):
+        sizes.append(V.shape[0])
+        return rigid(W, V)
+    s = StreamNRSfM(mode='batch', solver=solver, **kw)
+    out = []
+    for f in range(frames):
+        out += s.push(ids_of(f), d['W'][2 * f:2 * f + 2].T, d['V'][f])
+    out += s.flush()
+    return sizes, [sh.index for sh in out]
+
+
+@pytest.mark.parametrize('context, reselect, sizes', [
+    (5, None, [10, 15, 10]),    # each later batch with 5 published frames; the flush up to 10
+    (0, None, [10, 10, 5]),     # every batch alone
+    (5, 10, [10, 10, 10]),      # new ids from frame 10: nothing before it shares the batch's
+    (5, 8, [10, 12, 10]),       # new ids from frame 8: frames 8-9 only
+])
+def test_later_batches_take_the_published_frames_that_share_their_tracks(
+        face, context, reselect, sizes):
+    """``batch_context``: a batch after the first is solved with up to that many published
+    frames before it, back to the first that sees under half of the tracks visible in its
+    first frame (a reference re-selected), and each frame is still published once, in
+    order."""
+    d, ids = face
+
+    def ids_of(f: int) -> np.ndarray:
+        return ids + (10_000 if reselect is not None and f >= reselect else 0)
+    got, published = _solve_sizes(d, ids_of, 25, batch_frames=10, batch_context=context)
+    assert got == sizes
+    assert published == list(range(25))
+
+
+def test_a_later_batch_gains_from_its_context(face):
+    """Known answer: a 10-frame batch of a 30 deg sweep after the first sees a third of the
+    camera motion; solved with the 10 published frames before it, its frames come out
+    closer to the truth."""
+    d, ids = face
+
+    def run(context: int) -> float:
+        s = StreamNRSfM(mode='batch', batch_frames=10, batch_context=context)
+        out = []
+        for f in range(20):
+            out += s.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])
+        return float(np.mean([frame_e3d(sh.X, d['S'][sh.index]) for sh in out[10:]]))
+    with_context, alone = run(10), run(0)
+    assert with_context < 0.8 * alone, (with_context, alone)
+
+
+@pytest.mark.parametrize('bad', [-1, 2.5, True])
+def test_batch_context_must_be_a_count(bad):
+    with pytest.raises(ValueError, match='batch_context'):
+        StreamNRSfM(mode='batch', batch_context=bad)
 
 
 def test_window_stream_recovers_the_face_better_than_flat(face):

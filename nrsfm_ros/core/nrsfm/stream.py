@@ -16,7 +16,9 @@ there.  Modes (the reconstructor's ``mode``):
   ``perspective`` and intrinsics (:meth:`StreamNRSfM.set_intrinsics`) every batch solve is
   refined for a perspective camera (:func:`perspective.perspective_solve`: the shapes are then in
   weak-perspective-equivalent image coordinates, which back-project exactly); a ``planar``
-  batch is then fitted to the pinhole image itself (:mod:`.planar_pinhole`).
+  batch is then fitted to the pinhole image itself (:mod:`.planar_pinhole`).  A batch after
+  the first is solved with up to ``batch_context`` published frames before it that share its
+  tracks (context, not published again).
 * ``dspr``: the first ``batch_frames`` frames solved as ``batch`` (published together), their
   shapes clustered into a dynamic shape prior of distinct states (:mod:`.dspr`), then one shape
   per frame at low latency: every state fitted at once by orthographic Procrustes; a frame whose
@@ -52,6 +54,7 @@ from .dspr import DynamicShapePrior, necker_partner, object_shapes, shape_distan
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
+from .planar import PLANAR_PERSPECTIVE_RATIO
 from .planar_pinhole import refine_planar_pinhole
 from .result import NRSfMResult
 from .rigid_pinhole import batch_sign
@@ -95,6 +98,11 @@ RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS r
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
 DISTINCT_MIN = 1e-3       # first shape (its deformation range), at least DISTINCT_MIN
+CONTEXT_OVERLAP = 0.5     # batch_context: a published frame is context of a later batch while it
+#   sees this share of the tracks visible in the batch's first frame (none across a re-selection)
+PLANAR_KEPT_RATIO = 1.1   # auto after a planar batch: planar's perspective test allows this x
+#   PLANAR_PERSPECTIVE_RATIO (the same surface; a 90-frame flag batch at 12 deg tested 1.014 and
+#   went bmm at e3D 0.088 against planar's 0.035: BENCHMARKS, issue 12, session 36)
 
 
 @dataclass(frozen=True)
@@ -130,13 +138,14 @@ class _Frame:
 
 
 def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int,
-                   perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
+                   perspective: tuple[float, np.ndarray] | None = None,
+                   planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
     """A batch solve with ``method``; over ``BATCH_MAX_TRACKS`` tracks on a spread subset,
     extended to every track (core/nrsfm/extend.py).  ``perspective``: the camera's (focal,
-    principal point), for ``auto``'s planar test."""
+    principal point), for ``auto``'s planar test, and ``planar_ratio`` its bound."""
     from .extend import subset_solve
-    return subset_solve(lambda W, V: _solve_all(W, V, method, rank, perspective), W, V,
-                        BATCH_MAX_TRACKS)
+    return subset_solve(lambda W, V: _solve_all(W, V, method, rank, perspective,
+                                                 planar_ratio), W, V, BATCH_MAX_TRACKS)
 
 
 def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
@@ -160,10 +169,11 @@ def _warm_bmm_staged(W: np.ndarray, V: np.ndarray, start: NRSfMResult
 
 
 def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
-               perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
+               perspective: tuple[float, np.ndarray] | None = None,
+               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
-        return auto_solve(W, V, perspective)
+        return auto_solve(W, V, perspective, planar_ratio)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'bmm':
         kw = {'iterations': BMM_ITERATIONS}
@@ -173,21 +183,23 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
 
 
 def auto_solve(W: np.ndarray, V: np.ndarray,
-               perspective: tuple[float, np.ndarray] | None = None) -> NRSfMResult:
+               perspective: tuple[float, np.ndarray] | None = None,
+               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
     """``method: auto``: the deformation model chosen from the tracks, among three nested in
     freedom: ``planar`` where its tests pass (a flat rest shape whose reprojection residual is
     at most ``PLANAR_RIGID_RATIO`` x one rigid shape's; with the camera's ``perspective``
-    (focal, principal point) also a perspective image explained at most
-    ``PLANAR_PERSPECTIVE_RATIO`` x as badly as by the rigid shape, and "flat" then up to
-    ``PLANAR_REST_RATIO_PERSPECTIVE``), else ``bmm``, unless
+    (focal, principal point) also a perspective image explained at most ``planar_ratio``
+    (``PLANAR_PERSPECTIVE_RATIO``; the stream allows more after a planar batch) x as badly as
+    by the rigid shape, and "flat" then up to ``PLANAR_REST_RATIO_PERSPECTIVE``), else ``bmm``,
+    unless
     ``bmm`` explains less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the
     rigid factorisation leaves: its per-frame shapes then fit what the rigid shape cannot by
     depths the camera motion does not observe (or its fill of hidden tracks failed), and rigid
     is taken."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
-    from .planar import (PLANAR_PERSPECTIVE_RATIO, PLANAR_REST_RATIO,
-                         PLANAR_REST_RATIO_PERSPECTIVE, planar, rigid_residual, safe_rigid)
+    from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, planar,
+                         rigid_residual, safe_rigid)
     rig = safe_rigid(W, V)
     # with the camera the perspective test below also judges planar: the flatness test may
     # then allow the relief a weak-perspective fit reads into a close camera's perspective
@@ -196,7 +208,7 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
                  rest_ratio=PLANAR_REST_RATIO_PERSPECTIVE if checked else PLANAR_REST_RATIO)
     if res.converged and checked and \
             reflected_error(res, W, V, *perspective, per_frame=True) > \
-            PLANAR_PERSPECTIVE_RATIO * reflected_error(rig, W, V, *perspective):
+            planar_ratio * reflected_error(rig, W, V, *perspective):
         res = replace(res, converged=False)
     if res.converged:
         return res
@@ -229,6 +241,7 @@ class StreamNRSfM:
 
     def __init__(self, mode: str = 'window', window: int = 15, rank: int = 2,
                  iterations: int = 10, method: str = 'auto', batch_frames: int = 60,
+                 batch_context: int = 30,
                  solver: Callable[[np.ndarray, np.ndarray, str, int], NRSfMResult] | None = None,
                  projection: str = 'weak', dspr_recurrence_px: float = 0.0,
                  dspr_distinct: float = 0.0, dspr_prior_weight: float = 0.01,
@@ -253,6 +266,10 @@ class StreamNRSfM:
                             ('batch_frames', batch_frames, 3)):
             if v < lo:
                 raise ValueError(f'{name}: expected >= {lo}, got {v}')
+        if isinstance(batch_context, (bool, np.bool_)) or int(batch_context) != batch_context \
+                or batch_context < 0:
+            raise ValueError(f'batch_context: expected an integer >= 0, got {batch_context}')
+        self.batch_context = int(batch_context)
         self.mode, self.window, self.rank, self.iterations = mode, window, rank, iterations
         self.method, self.batch_frames = method, batch_frames
         for name, v in (('dspr_recurrence_px', dspr_recurrence_px),
@@ -283,7 +300,8 @@ class StreamNRSfM:
                          iterations=int(spva_iterations))
         self._solver = solver or _solve_default
         size = batch_frames if mode in ('batch', 'dspr', 'spva') else window
-        self._frames: deque[_Frame] = deque(maxlen=size)
+        self._frames: deque[_Frame] = deque(maxlen=size + (batch_context if mode == 'batch'
+                                                           else 0))
         self._pending: list[_Frame] = []          # pushed, no shape published yet
         self._published: deque[StreamShape] = deque(maxlen=size)
         self._count = 0
@@ -345,7 +363,8 @@ class StreamNRSfM:
         if self.mode in ('batch', 'dspr', 'spva'):
             if len(self._pending) < self.batch_frames:
                 return []
-            out = self._solve_batch(list(self._pending), self.mode == 'spva')
+            out = self._solve_batch(self._context() + list(self._pending),
+                                    self.mode == 'spva')
             if self.mode == 'dspr':
                 self._build_prior()
                 self._prior_G = self._last_G if self.prior is not None else None
@@ -367,17 +386,38 @@ class StreamNRSfM:
         if not self._pending:
             return []
         if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
-            if self.mode == 'batch' and self._published and self.last_method != 'planar':
+            if self.mode == 'batch' and self._published and self.last_method != 'planar' \
+                    and self.batch_context > 0:
                 # a short last batch is solved with the frames before it (a full batch, its
                 # published ones as context): alone it sees little camera motion (face 30 deg,
                 # 30-frame flush: 0.155 -> 0.03); planar solves lost with it (flag 60 deg
                 # amplitude 2 0.140 -> 0.228): BENCHMARKS, issue 12, session 35
-                return self._solve_batch(list(self._frames))
+                return self._solve_batch(list(self._frames)[-self.batch_frames:])
             return self._solve_batch(list(self._pending)) \
                 if self.mode in ('batch', 'dspr', 'spva') \
                 else self._solve_window()
         # a single frame: no depth is observable; its points at the centroid's depth
         return [self._publish(_flat_shape(fr)) for fr in list(self._pending)]
+
+    def _context(self) -> list[_Frame]:
+        """``batch`` mode, a later batch: the last up to ``batch_context`` published frames
+        before it that see at least ``CONTEXT_OVERLAP`` of the tracks visible in its first
+        frame (back to the first that does not: a reference re-selected before the batch ends
+        its context).  Solved with the batch (not published again), they give it the camera
+        motion before it: a batch where the camera passes near a planar surface's normal cannot
+        fix the tilt alone (sheet 60 deg, frames 60-119: 0.103 -> 0.049)."""
+        if self.mode != 'batch' or not self._published or self.batch_context == 0:
+            return []
+        first = self._pending[0]
+        ref = first.ids[first.vis >= 0.5]
+        before = [f for f in self._frames if f.index < first.index][-self.batch_context:]
+        keep: list[_Frame] = []
+        for f in reversed(before):
+            seen = np.intersect1d(f.ids[f.vis >= 0.5], ref, assume_unique=True).size
+            if seen < CONTEXT_OVERLAP * max(ref.size, 1):
+                break
+            keep.append(f)
+        return keep[::-1]
 
     # ------------------------------------------------------------------ tracks -> W, V
     @staticmethod
@@ -432,7 +472,10 @@ class StreamNRSfM:
     def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
         def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
             if self._solver is _solve_default and self.projection == 'perspective':
-                return _solve_default(W, V, self.method, self.rank, self._intrinsics)
+                return _solve_default(W, V, self.method, self.rank, self._intrinsics,
+                                      PLANAR_PERSPECTIVE_RATIO * (
+                                          PLANAR_KEPT_RATIO if self.last_method == 'planar'
+                                          else 1.0))
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
         self._pinhole_signed = False
