@@ -77,6 +77,20 @@ def new_report(in_path: str | Path) -> tuple[ProcessReport, int]:
     return report, info['messages']
 
 
+def expected_frames(in_path: str | Path, stages: Sequence[str]) -> int:
+    """The frames the reconstructor will see in a bag: its camera images where the tracker
+    runs (one tracks message each), else its tracks messages."""
+    topics = bag_info(in_path)['topics']
+    source = ('image', 'image_compressed') if 'tracker' in stages else ('tracks',)
+    return sum(topics.get(TOPICS[k], {}).get('count', 0) for k in source)
+
+
+def expect_frames(proc: Processor, in_path: str | Path, stages: Sequence[str]) -> None:
+    """Tell the reconstructor (``proc``, if it is one) the bag's length in frames."""
+    if isinstance(proc, ReconstructorProcessor):
+        proc.expect_frames(expected_frames(in_path, stages))
+
+
 def read_input(m: Any, report: ProcessReport) -> Any | None:
     """The bag message ``m`` deserialized where a stage takes its topic (timed in the report's
     ``io_s``); None for other topics, and, with the failure recorded, where it cannot be read."""
@@ -124,6 +138,7 @@ def process_bag(in_path: str | Path, out_path: str | Path, stages: Sequence[str]
     procs = make_processors(stages, params)
     for proc in procs.values():
         proc.stats.timing_window = None          # the report's percentiles cover every call
+        expect_frames(proc, in_path, stages)
     report, total = new_report(in_path)
     io_s = report.io_s
     t0, c0 = time.perf_counter(), time.process_time()

@@ -44,8 +44,8 @@ from .io.bag import BagWriter, read_messages
 from .io.errors import MessageError
 from .io.msgtypes import stamp_ns
 from .params import Params
-from .pipeline import (ROUTES, STAGES, ProcessReport, _progress, make_processors, new_report,
-                       read_input)
+from .pipeline import (ROUTES, STAGES, ProcessReport, _progress, expected_frames,
+                       make_processors, new_report, read_input)
 from .processing import ReconstructorProcessor, SceneFlowProcessor
 
 QUEUE_SIZE = 64          # events in flight between two processes
@@ -108,7 +108,8 @@ class _Stopped(Exception):
 
 
 def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
-                outq: Any, stop: threading.Event | None = None) -> None:
+                outq: Any, frames: int | None = None, stop: threading.Event | None = None
+                ) -> None:
     """A stage process (or thread): handle the events routed to it, pass everything on in
     order.  Ctrl-C is the main process' to handle (it ends the stages), not each stage's."""
     threaded = threading.current_thread() is not threading.main_thread()
@@ -117,6 +118,8 @@ def _stage_main(stage: str, params: Params | None, chain: list[str], inq: Any,
         signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a forked parent's handler (rclpy) goes
     proc = make_processors([stage], {stage: params} if params is not None else None)[stage]
     proc.stats.timing_window = None
+    if frames is not None and isinstance(proc, ReconstructorProcessor):
+        proc.expect_frames(frames)       # the bag's length (pipeline.expected_frames)
     i = chain.index(stage)
     kinds = {t: k for t, routes in ROUTES.items() for s, k in routes if s == stage}
     failures: list[dict[str, Any]] = []
@@ -311,12 +314,14 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
     chain = chain_order(stages)
     make_processors(chain, params)          # parameter errors here, before any process
     report, total = new_report(in_path)
+    frames = expected_frames(in_path, chain)
     io_s = report.io_s
     t0, c0 = time.perf_counter(), time.process_time()
     ctx: Any = _ThreadContext() if threads else _context()
     queues = [ctx.Queue(QUEUE_SIZE) for _ in range(len(chain) + 1)]
     procs = [ctx.Process(target=_stage_main, name=f'nrsfm-{s}', daemon=True,
-                         args=(s, (params or {}).get(s), chain, queues[k], queues[k + 1]))
+                         args=(s, (params or {}).get(s), chain, queues[k], queues[k + 1],
+                               frames if s == 'reconstructor' else None))
              for k, s in enumerate(chain)]
     for p in procs:
         p.start()

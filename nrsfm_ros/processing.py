@@ -640,6 +640,12 @@ class ReconstructorProcessor(Processor):
             out[hit] = vis[k[hit]]
         return out
 
+    def expect_frames(self, frames: int) -> None:
+        """An offline stream's length in tracks messages (:meth:`StreamNRSfM.expect`: its
+        last batch takes the rest instead of a short one alone).  A stream restarted after a
+        failed push (``recover``) has no known length."""
+        self.stream.expect(frames)
+
     def flush(self) -> list[Output]:
         """End of an offline stream: a shape for every frame still pending."""
         return self._emit(self.stream.flush())

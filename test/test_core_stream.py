@@ -1,6 +1,8 @@
 """Streaming NRSfM keyed by track id, the depth image and the stream evaluation."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -251,6 +253,43 @@ def test_a_later_batch_gains_from_its_context(face):
 def test_batch_context_must_be_a_count(bad):
     with pytest.raises(ValueError, match='batch_context'):
         StreamNRSfM(mode='batch', batch_context=bad)
+
+
+@pytest.mark.parametrize('frames, expected, method, sizes', [
+    (15, 15, 'rigid', [15]),            # 5 left when the first batch fills (<= 10 // 2): waits
+    (25, 25, 'rigid', [10, 20]),        # 5 left after the second: it takes them (+ 5 context)
+    (27, 27, 'rigid', [10, 15, 10]),    # 7 left (> 5): a flush, as live
+    (25, 25, 'planar', [10, 15, 5]),    # after a planar batch the rest is the flush's, alone
+    (13, 15, 'rigid', [13]),            # fewer frames came than expected: solved at the end
+    (25, None, 'rigid', [10, 15, 10]),  # no length known (live)
+])
+def test_a_known_length_lets_the_last_batch_take_the_rest(face, frames, expected, method,
+                                                           sizes):
+    """``expect`` (``process`` on a bag): a batch that fills with at most half a batch of
+    frames left waits for them, so no short batch is solved alone at the end, unless the last
+    batch was ``planar``; each frame is still published once, in order."""
+    d, ids = face
+    got: list[int] = []
+
+    def solver(W, V, method_, rank):
+        got.append(V.shape[0])
+        res = rigid(W, V)
+        return replace(res, method=method)
+    s = StreamNRSfM(mode='batch', solver=solver, batch_frames=10, batch_context=5)
+    if expected is not None:
+        s.expect(expected)
+    out = []
+    for f in range(frames):
+        out += s.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])
+    out += s.flush()
+    assert got == sizes
+    assert [sh.index for sh in out] == list(range(frames))
+
+
+@pytest.mark.parametrize('bad', [-1, 2.5, True])
+def test_expect_takes_a_frame_count(bad):
+    with pytest.raises(ValueError, match='frames'):
+        StreamNRSfM(mode='batch').expect(bad)
 
 
 def test_window_stream_recovers_the_face_better_than_flat(face):

@@ -193,3 +193,29 @@ def test_a_failed_stage_thread_is_reported_and_every_thread_ends(bag, tmp_path, 
 def test_workers_must_be_named(bag, tmp_path):
     with pytest.raises(ValueError, match="workers='fibres'"):
         process_bag_pipelined(bag, tmp_path / 'o', progress=False, workers='fibres')
+
+
+def test_the_reconstructor_is_told_the_bags_length(bag, tmp_path, monkeypatch):
+    """``process`` tells the reconstructor how many frames the bag holds (its camera images
+    where the tracker runs, else its tracks), one process or pipelined alike, and with a
+    batch that waits for the bag's last frames both write the same clouds."""
+    from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+    from nrsfm_ros.params import ReconstructorParams
+    from nrsfm_ros.pipeline import expected_frames
+    assert expected_frames(bag, ['tracker', 'reconstructor']) == 24
+    assert expected_frames(bag, ['reconstructor']) == 0        # no tracks in a camera bag
+    seen: list[int] = []
+    original = StreamNRSfM.expect
+
+    def expect(self, frames):
+        seen.append(frames)
+        original(self, frames)
+    monkeypatch.setattr(StreamNRSfM, 'expect', expect)
+    params = {'reconstructor': ReconstructorParams(batch_frames=16)}   # 8 left: it waits
+    stages = ['tracker', 'reconstructor']
+    out = {w: tmp_path / str(w) for w in (False, 'threads')}
+    for w, path in out.items():
+        process_bag(bag, path, stages=stages, params=params, progress=False, pipelined=w)
+    assert seen == [24, 24]
+    a, b = (_messages(p)['nrsfm/points'] for p in out.values())
+    assert len(a) == 24 and a == b

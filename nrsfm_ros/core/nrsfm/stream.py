@@ -320,6 +320,7 @@ class StreamNRSfM:
         self._last_G: np.ndarray | None = None        # the last solve's gauge rotation
         self._prior_G: np.ndarray | None = None       # dspr / spva: the prior's batch's
         self._new_ids: set[int] = set()
+        self._expected: int | None = None   # the stream's length where known (expect)
         self.dspr_seconds: list[float] = []           # dspr: per-frame solve time after the prior
 
     @property
@@ -343,6 +344,25 @@ class StreamNRSfM:
         self._intrinsics = check_intrinsics(focal, principal)
 
     # ------------------------------------------------------------------ public
+    def expect(self, frames: int) -> None:
+        """The stream's length in frames, where it is known (``process`` on a bag).  In
+        ``batch`` mode a batch that fills with at most ``batch_frames // 2`` frames left waits
+        for them and is solved with them, so the stream never ends on a short batch solved
+        alone or with a few frames of context (150-frame renders through the tracker,
+        BENCHMARKS issue 12, session 36), unless the last batch was ``planar`` (then
+        the rest is the flush's, as live: two of the planar renders lost up to 1.5x)."""
+        if isinstance(frames, (bool, np.bool_)) or int(frames) != frames or frames < 0:
+            raise ValueError(f'frames: expected an integer >= 0, got {frames}')
+        self._expected = int(frames)
+        if self.mode == 'batch':        # a last batch of up to 1.5 batch_frames, its context
+            self._frames = deque(self._frames, maxlen=2 * self.batch_frames + self.batch_context)
+
+    def _waits(self) -> bool:
+        """A full batch waits for the stream's last frames (:meth:`expect`)."""
+        if self.mode != 'batch' or self._expected is None or self.last_method == 'planar':
+            return False
+        return 0 < self._expected - self._count <= self.batch_frames // 2
+
     def push(self, ids: np.ndarray, uv: np.ndarray, visibility: np.ndarray | None = None
              ) -> list[StreamShape]:
         ids = np.asarray(ids).astype(np.int64)
@@ -361,7 +381,7 @@ class StreamNRSfM:
         if self.mode in ('dspr', 'spva') and self.prior is not None:
             return [self._publish(self._step_dspr(fr))]
         if self.mode in ('batch', 'dspr', 'spva'):
-            if len(self._pending) < self.batch_frames:
+            if len(self._pending) < self.batch_frames or self._waits():
                 return []
             out = self._solve_batch(self._context() + list(self._pending),
                                     self.mode == 'spva')
@@ -385,6 +405,9 @@ class StreamNRSfM:
         """Shapes for every frame still pending (end of stream)."""
         if not self._pending:
             return []
+        if self.mode == 'batch' and len(self._pending) >= self.batch_frames:
+            # a batch that waited for frames that did not come (expect): solved as it is
+            return self._solve_batch(self._context() + list(self._pending))
         if len(self._frames) >= 2 and self._pending[0].index >= self._frames[0].index:
             if self.mode == 'batch' and self._published and self.last_method != 'planar' \
                     and self.batch_context > 0:
