@@ -9,6 +9,7 @@ import pytest
 from nrsfm_ros.core.depth import depth_image
 from nrsfm_ros.core.metrics import flat_shape, frame_e3d, score_stream
 from nrsfm_ros.core.nrsfm.factorization import rigid
+from nrsfm_ros.core.nrsfm.result import NRSfMResult
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
 from nrsfm_ros.evaluation import stream_on_tracks
 from nrsfm_ros.io.synth import dense_tracks
@@ -435,3 +436,42 @@ def test_depth_follows_the_weak_perspective_scale(face_cameras):
             (to_metric(sh.X, sh.t, K, 4.0 * sh.depth_ratio) for sh in out)]
     np.testing.assert_allclose(size, np.mean(size), rtol=0.05)
     assert np.mean(ratio[:10]) == pytest.approx(1.0, rel=0.05)    # the first batch at mean_depth
+
+
+def test_a_planar_last_batch_that_starts_reflected_is_turned_back_up_to_its_least_tilt():
+    """A plane turning through the view (tilt 32.5 deg at frame 0, 0 at frame 13, -15 at 19),
+    solved in two planar batches of 10 that share no frame; the second solve's first frames
+    took the other reflection up to the frame facing the camera (its frames 10-13 mirrored,
+    continuous with the rest: a Necker slip), its sign otherwise the pinhole fit's.  Its first
+    frame's depths run against the last published frame's: frames 10-13 are turned back,
+    every frame agrees with the truth (before: 10-13 published mirrored)."""
+    g = np.linspace(-1.0, 1.0, 9)
+    x, y = (a.ravel() * 50.0 for a in np.meshgrid(g, g))
+    theta = np.deg2rad(2.5 * (13 - np.arange(20)))
+    S = np.stack([np.stack([x * np.cos(t), y, -x * np.sin(t) + 2.0 * (y / 50.0) ** 2], 1)
+                  for t in theta])                                     # (20, 81, 3)
+    ids = np.arange(x.size)
+    calls: list[int] = []
+
+    def solver(W, V, method, rank):
+        lo = 10 * len(calls)
+        calls.append(lo)
+        s._pinhole_signed = True        # as a planar batch refined under the pinhole camera
+        Sb = S[lo:lo + V.shape[0]].copy()
+        if lo == 10:
+            Sb[:4, :, 2] *= -1.0                                        # frames 10-13 mirrored
+        F = V.shape[0]
+        return NRSfMResult(S=Sb, R=np.tile(np.eye(3), (F, 1, 1)), scale=np.ones(F),
+                           t=np.zeros((F, 2)), method='planar', rank=0, residual_px=0.0,
+                           iterations=1, converged=True, seconds=0.0)
+    s = StreamNRSfM(mode='batch', solver=solver, batch_frames=10, batch_context=0)
+    out = []
+    for f in range(20):
+        out += s.push(ids, S[f][:, :2], np.ones(ids.size))
+    assert calls == [0, 10] and [sh.index for sh in out] == list(range(20))
+
+    def corr(a: np.ndarray, b: np.ndarray) -> float:
+        a, b = a - a.mean(), b - b.mean()
+        return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+    agree = [corr(sh.X[:, 2], S[sh.index][:, 2]) for sh in out]
+    assert all(c > 0.9 for c in agree[:13] + agree[14:]), np.round(agree, 2)   # 13: flat

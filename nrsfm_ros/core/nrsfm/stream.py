@@ -100,6 +100,9 @@ DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape dista
 DISTINCT_MIN = 1e-3       # first shape (its deformation range), at least DISTINCT_MIN
 CONTEXT_OVERLAP = 0.5     # batch_context: a published frame is context of a later batch while it
 #   sees this share of the tracks visible in the batch's first frame (none across a re-selection)
+START_FLIP_CORRELATION = 0.5   # _reflected_start: a planar last batch's first frame whose depth
+#   correlation with the last published frame is below minus this starts reflected
+START_FLIP_FRAMES = 3     # ... against each of the last this many published frames
 PLANAR_KEPT_RATIO = 1.1   # auto after a planar batch: planar's perspective test allows this x
 #   PLANAR_PERSPECTIVE_RATIO (the same surface; a 90-frame flag batch at 12 deg tested 1.014 and
 #   went bmm at e3D 0.088 against planar's 0.035: BENCHMARKS, issue 12, session 36)
@@ -619,6 +622,10 @@ class StreamNRSfM:
         if self._published and not signed:
             self._flip = self._reflection(frames, ids, X_all)
             X_all = X_all * self._flip
+        run = self._reflected_start(frames, ids, res, X_all) if signed else 0
+        if run:
+            res = reflect_frames(res, np.where(np.arange(len(frames)) < run, -1.0, 1.0))
+            X_all = res.S * res.scale[:, None, None] * self._flip
         R_all, ratio = self._gauge(frames, res)
         shapes = []
         for fr in list(wanted):
@@ -632,6 +639,36 @@ class StreamNRSfM:
                 fr.index, fr.ids[have], X_all[i, col[have]], res.t[i], res.residual_px,
                 None if R_all is None else R_all[i], float(ratio[i]))))
         return shapes
+
+    def _reflected_start(self, frames: list[_Frame], ids: np.ndarray, res: NRSfMResult,
+                         X_all: np.ndarray) -> int:
+        """A ``planar`` solve whose sign its pinhole fit chose and that shares no frame with
+        the published ones (a planar stream's last batch): how many of its first frames to
+        reflect.  Its frames' signs are continuous in time, and a Necker reflection slips in
+        continuously only where the plane faces the camera most (a plane's two reflections
+        coincide there): a first frame whose depths run against each of the last
+        ``START_FLIP_FRAMES`` published frames' (correlation below ``-START_FLIP_CORRELATION``;
+        one wrong published frame is not followed) is taken to be in the other reflection up
+        to the frame of least tilt (150-frame renders: 4-8 frames at the start of a 30-frame
+        flush published reflected in 5 of 12 planar renders, fixed; BENCHMARKS, issue 12,
+        session 36)."""
+        if res.method != 'planar' or not self._published:
+            return 0
+        published = {sh.index for sh in self._published}
+        if any(f.index in published for f in frames):
+            return 0
+        for sh in list(self._published)[-START_FLIP_FRAMES:]:
+            _, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
+            if a.size < 4:
+                return 0
+            za = sh.X[a, 2] - sh.X[a, 2].mean()
+            zb = X_all[0, b, 2] - X_all[0, b, 2].mean()
+            if float(za @ zb) >= -START_FLIP_CORRELATION * float(np.linalg.norm(za) *
+                                                                  np.linalg.norm(zb)):
+                return 0
+        Xc = X_all - X_all.mean(axis=1, keepdims=True)
+        normal = np.linalg.svd(Xc, full_matrices=False)[2][:, -1]     # (F, 3) per frame
+        return int(np.argmin(np.hypot(normal[:, 0], normal[:, 1]))) + 1
 
     def _gauge(self, frames: list[_Frame], res: NRSfMResult
                ) -> tuple[np.ndarray | None, np.ndarray]:
