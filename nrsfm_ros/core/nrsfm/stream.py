@@ -623,9 +623,9 @@ class StreamNRSfM:
             self._flip = self._reflection(frames, ids, X_all)
             X_all = X_all * self._flip
         run = self._reflected_start(frames, ids, res, X_all) if signed else 0
-        if run:
+        if run:             # signed: no stream flip to apply
             res = reflect_frames(res, np.where(np.arange(len(frames)) < run, -1.0, 1.0))
-            X_all = res.S * res.scale[:, None, None] * self._flip
+            X_all = res.S * res.scale[:, None, None]
         R_all, ratio = self._gauge(frames, res)
         shapes = []
         for fr in list(wanted):
@@ -658,13 +658,8 @@ class StreamNRSfM:
         if any(f.index in published for f in frames):
             return 0
         for sh in list(self._published)[-START_FLIP_FRAMES:]:
-            _, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
-            if a.size < 4:
-                return 0
-            za = sh.X[a, 2] - sh.X[a, 2].mean()
-            zb = X_all[0, b, 2] - X_all[0, b, 2].mean()
-            if float(za @ zb) >= -START_FLIP_CORRELATION * float(np.linalg.norm(za) *
-                                                                  np.linalg.norm(zb)):
+            dot, norms = _depth_agreement(sh, ids, X_all[0])
+            if norms == 0.0 or dot >= -START_FLIP_CORRELATION * norms:
                 return 0
         Xc = X_all - X_all.mean(axis=1, keepdims=True)
         normal = np.linalg.svd(Xc, full_matrices=False)[2][:, -1]     # (F, 3) per frame
@@ -736,22 +731,11 @@ class StreamNRSfM:
         pos = {f.index: i for i, f in enumerate(frames)}
         for sh in self._published:
             i = pos.get(sh.index)
-            if i is None:
-                continue
-            common, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
-            if common.size < 4:
-                continue
-            za = sh.X[a, 2] - sh.X[a, 2].mean()
-            zb = X_all[i, b, 2] - X_all[i, b, 2].mean()
-            score += float(za @ zb)
+            if i is not None:
+                score += _depth_agreement(sh, ids, X_all[i])[0]
         if score == 0.0 and self._published:
             # no frame in common (a new batch): compare with the last published frame
-            sh = self._published[-1]
-            common, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
-            if common.size >= 4:
-                za = sh.X[a, 2] - sh.X[a, 2].mean()
-                zb = X_all[0, b, 2] - X_all[0, b, 2].mean()
-                score = float(za @ zb)
+            score = _depth_agreement(self._published[-1], ids, X_all[0])[0]
         return np.array([1.0, 1.0, -1.0 if score < 0 else 1.0])
 
     def _publish(self, shape: StreamShape) -> StreamShape:
@@ -942,6 +926,18 @@ class StreamNRSfM:
         resid = np.linalg.norm(w - t[:, None] - R2 @ S, axis=0)
         return StreamShape(fr.index, fr.ids[have], X[col[have]], t,
                            float((resid * vis).sum() / max(vis.sum(), 1e-12)))
+
+
+def _depth_agreement(sh: StreamShape, ids: np.ndarray, X: np.ndarray) -> tuple[float, float]:
+    """A published shape's centred depths against a solved frame's X (P, 3) over the tracks
+    they share (``ids`` label X's rows): their dot product and the product of their norms
+    (0.0, 0.0 where fewer than 4 are shared)."""
+    _, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
+    if a.size < 4:
+        return 0.0, 0.0
+    za = sh.X[a, 2] - sh.X[a, 2].mean()
+    zb = X[b, 2] - X[b, 2].mean()
+    return float(za @ zb), float(np.linalg.norm(za) * np.linalg.norm(zb))
 
 
 def _flat_shape(fr: _Frame) -> StreamShape:
