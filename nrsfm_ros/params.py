@@ -121,11 +121,11 @@ def rule(default: Any, check: Callable[[Any], str | None] | None = None,
     return field(default=default, metadata={'rule': check, 'doc': doc})
 
 
-def _queue_size() -> Any:
+def _queue_size(extra: str = '') -> Any:
     return rule(0, _at_least(0), 'live: messages each input subscription may hold while the '
                 'node is busy; 0: by the input\'s QoS, 1 on a best-effort (camera-rate) input, '
                 'so that its latency stays bounded when the node cannot keep up, 64 on a '
-                'reliable one')
+                'reliable one' + extra)
 
 
 def _queue_policy() -> Any:
@@ -309,7 +309,8 @@ class ReconstructorParams(Params):
                                '(a window or batch not yet full) after this long without tracks '
                                '(0: never)')
     reliable: bool = rule(True, None, 'reliable QoS on the tracks input')
-    queue_size: int = _queue_size()
+    queue_size: int = _queue_size(' (reliable tracks in modes batch, dspr and spva: '
+                                  '4 x batch_frames, what arrives while a batch is solved)')
     queue_policy: str = _queue_policy()
 
     def check(self) -> list[tuple[str, str]]:

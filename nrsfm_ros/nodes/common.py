@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import fields
 from typing import Any
 
@@ -59,13 +59,17 @@ def queue_depth(queue_size: int, reliable: bool) -> int:
 class InputQueue:
     """The bounded input queue of a node: one FIFO in arrival order, at most ``size(kind)``
     messages per subscription kind.  A full kind under ``keep_latest`` discards its oldest
-    message (counted by ``on_drop``); under ``keep_all`` ``put`` waits until there is room."""
+    message (counted by ``on_drop``); under ``keep_all`` ``put`` waits until there is room.
+    A ``latest`` kind is a state whose newest value alone matters (CameraInfo, sent with every
+    image): a new message replaces the one still queued, in its place in the queue (so it
+    applies no later than that one would have), and nothing is counted as dropped."""
 
     def __init__(self, size: Callable[[str], int], policy: Callable[[], str],
-                 on_drop: Callable[[str], None]) -> None:
-        self._items: deque[tuple[str, Any]] = deque()
+                 on_drop: Callable[[str], None], latest: Collection[str] = ()) -> None:
+        self._items: deque[list[Any]] = deque()        # [kind, msg]
         self._counts: dict[str, int] = {}
         self._size, self._policy, self._on_drop = size, policy, on_drop
+        self.latest = set(latest)
         self._cond = threading.Condition()
         self.closed = False
 
@@ -74,6 +78,9 @@ class InputQueue:
 
     def put(self, kind: str, msg: Any) -> None:
         with self._cond:
+            if kind in self.latest and self._counts.get(kind, 0):
+                next(item for item in self._items if item[0] == kind)[1] = msg
+                return
             while not self.closed and self._counts.get(kind, 0) >= self._size(kind):
                 if self._policy() == 'keep_all':
                     self._cond.wait(0.1)
@@ -84,7 +91,7 @@ class InputQueue:
                 self._on_drop(kind)
             if self.closed:
                 return
-            self._items.append((kind, msg))
+            self._items.append([kind, msg])
             self._counts[kind] = self._counts.get(kind, 0) + 1
             self._cond.notify_all()
 
@@ -158,8 +165,13 @@ class ProcessorNode(Node):
         """Messages the input ``kind`` may hold (``queue_size``; 0: by its QoS)."""
         return queue_depth(self.processor.params.queue_size, self._reliable.get(kind, True))
 
-    def subscribe(self, kind: str, msgtype: str, qos: QoSProfile) -> None:
+    def subscribe(self, kind: str, msgtype: str, qos: QoSProfile, latest: bool = False
+                  ) -> None:
+        """Subscribe input ``kind``; ``latest``: a state input whose newest message alone
+        matters (:class:`InputQueue`)."""
         topic = TOPICS[kind]
+        if latest:
+            self.queue.latest.add(kind)
         self._reliable[kind] = qos.reliability == ReliabilityPolicy.RELIABLE
         events = SubscriptionEventCallbacks(
             message_lost=lambda info: self._dropped(kind, int(info.total_count_change)))

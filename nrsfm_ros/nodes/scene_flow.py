@@ -22,7 +22,7 @@ class SceneFlowNode(ProcessorNode):
         if self.processor.params.method == 'msf':
             self.subscribe('image', 'sensor_msgs/msg/Image', SENSOR)
             self.subscribe('depth', 'sensor_msgs/msg/Image', SENSOR)
-            self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR)
+            self.subscribe('camera_info', 'sensor_msgs/msg/CameraInfo', SENSOR, latest=True)
         else:
             self.subscribe('points', 'sensor_msgs/msg/PointCloud2', RELIABLE)
             self.subscribe('object_pose', 'geometry_msgs/msg/TransformStamped', RELIABLE)
