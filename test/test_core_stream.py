@@ -475,3 +475,56 @@ def test_a_planar_last_batch_that_starts_reflected_is_turned_back_up_to_its_leas
         return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
     agree = [corr(sh.X[:, 2], S[sh.index][:, 2]) for sh in out]
     assert all(c > 0.9 for c in agree[:13] + agree[14:]), np.round(agree, 2)   # 13: flat
+
+
+def _yawed(yaw_deg: np.ndarray) -> NRSfMResult:
+    """A planar result whose plane (object z) is turned by ``yaw_deg`` per frame about the
+    camera's y axis: its tilt is |yaw|."""
+    a = np.radians(yaw_deg)
+    R = np.zeros((a.size, 3, 3))
+    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1] = np.cos(a), np.sin(a), 1.0
+    R[:, 2, 0], R[:, 2, 2] = -np.sin(a), np.cos(a)
+    F, P = a.size, 8
+    S = np.zeros((F, P, 3))
+    S[:, :, 0] = np.arange(P)
+    S[:, :, 2] = np.sin(np.arange(P))[None] * np.linspace(1, 2, F)[:, None]
+    return NRSfMResult(S=S, R=R, scale=np.ones(F), t=np.zeros((F, 2)), method='planar', rank=0,
+                       residual_px=1.0, iterations=1, converged=True, seconds=0.0)
+
+
+def test_plane_crossings_are_the_deep_dips_of_the_tilt():
+    """The frames where the plane faces the camera: local minima of the tilt under 15 deg
+    whose dip is at least 5 deg on both sides, the two deepest, in frame order."""
+    from nrsfm_ros.core.nrsfm.stream import plane_crossings
+    t = np.arange(90)
+    yaw = 25 * np.sin(2 * np.pi * t / 60)           # faces the camera at 0, 30 and 60
+    assert plane_crossings(_yawed(yaw).R) == [30, 60]
+    assert plane_crossings(_yawed(yaw).R, most=1) in ([30], [60])
+    assert plane_crossings(_yawed(0.4 * yaw + 30).R) == []        # never under 15 deg
+    assert plane_crossings(_yawed(8 + 2 * np.sin(t / 3.0)).R) == []   # dips of 4 deg
+    assert plane_crossings(_yawed(np.abs(np.linspace(-20, 20, 41)) + 1).R) == [20]
+
+
+def test_a_planar_batch_is_also_refined_from_its_crossings(monkeypatch):
+    """The pinhole refinement of a planar batch also starts from the batch reflected after
+    each crossing (a Necker slip there leaves little trace in the unrefined image), and the
+    lowest reprojection error wins."""
+    import nrsfm_ros.core.nrsfm.stream as st
+    res = _yawed(25 * np.sin(2 * np.pi * np.arange(60) / 60))   # one crossing, at frame 30
+    calls = []
+
+    def fake_refine(start, W, V, focal, principal):
+        z = start.S[:, :, 2]
+        k = len(calls)
+        calls.append(np.sign(z[:, 1]))
+        # the start reflected after frame 30 explains the image best
+        return replace(start, residual_px=0.5 if (z[31:, 1] < 0).all() and (z[:31, 1] > 0).all()
+                       else 0.9 + 0.01 * k)
+    monkeypatch.setattr(st, 'refine_planar_pinhole', fake_refine)
+    monkeypatch.setattr(st, 'frame_reflections', lambda errors, per_frame: np.ones(60))
+    stream = StreamNRSfM(mode='batch', projection='perspective')
+    stream.set_intrinsics(300.0, np.array([128.0, 96.0]))
+    out = stream._refine_planar(res, np.zeros((120, 8)), np.ones((60, 8)))
+    assert len(calls) == 2                       # as solved, and reflected after frame 30
+    assert out.residual_px == 0.5
+    assert (out.S[31:, 1, 2] < 0).all() and (out.S[:31, 1, 2] > 0).all()

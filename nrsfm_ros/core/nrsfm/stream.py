@@ -106,6 +106,33 @@ START_FLIP_FRAMES = 3     # ... against each of the last this many published fra
 PLANAR_KEPT_RATIO = 1.1   # auto after a planar batch: planar's perspective test allows this x
 #   PLANAR_PERSPECTIVE_RATIO (the same surface; a 90-frame flag batch at 12 deg tested 1.014 and
 #   went bmm at e3D 0.088 against planar's 0.035: BENCHMARKS, issue 12, session 36)
+CROSSING_TILT = 15.0      # _refine_planar: a frame where the plane faces the camera closer than
+CROSSING_PROMINENCE = 5.0  # this (deg), the least tilt of a dip this deep on both sides, is
+CROSSING_STARTS = 2       # a crossing; the refinement also starts from the batch reflected after
+#   each of the (at most this many) deepest.  84 runs of planar renders (60 / 150 / 300 frames,
+#   ground-truth and tracker tracks): frames published reflected 866 -> 647, e3D geometric mean
+#   0.983 (the 300-frame sheet at 30 deg 0.047 -> 0.035, 69 -> 18 reflected; the occluded sheet
+#   at 12 deg +11%); with the deepest one only 796 and two renders +21% / +49%: BENCHMARKS,
+#   issue 12, session 37
+
+
+def plane_crossings(R: np.ndarray, max_tilt: float = CROSSING_TILT,
+                    prominence: float = CROSSING_PROMINENCE, most: int = CROSSING_STARTS
+                    ) -> list[int]:
+    """Frames (in order) where a planar solve's plane faces the camera most: local minima of
+    the tilt (the angle between the plane's normal, the object z axis, and the viewing axis;
+    cameras R (F, 3, 3) object -> camera) under ``max_tilt`` degrees whose dip is at least
+    ``prominence`` degrees below the highest tilt on each side, the ``most`` deepest.  A plane's
+    two depth reflections coincide there, so a Necker slip enters a batch only at such a frame
+    (BENCHMARKS, issue 12, session 36)."""
+    tilt = np.degrees(np.arccos(np.clip(np.abs(np.asarray(R)[:, 2, 2]), 0.0, 1.0)))
+    found = []
+    for f in range(1, tilt.size - 1):
+        if tilt[f] <= tilt[f - 1] and tilt[f] < tilt[f + 1] and tilt[f] < max_tilt:
+            dip = min(tilt[:f].max(), tilt[f + 1:].max()) - tilt[f]
+            if dip >= prominence:
+                found.append((dip, f))
+    return sorted(f for _, f in sorted(found, reverse=True)[:most])
 
 
 @dataclass(frozen=True)
@@ -540,11 +567,18 @@ class StreamNRSfM:
         (``frame_reflections``) the refinement also starts from those signs and the lower
         reprojection error decides (ground-truth tracks, 1.6 m, as-is / sign start: flag 30 deg
         amplitude 2 0.079 / 0.057 at 1.99 / 1.02 px, sheet 12 deg 0.067 / 0.040 at 0.77 / 0.28
-        px, the flag at 96x72 0.101 / 0.186 at 0.33 / 0.51 px)."""
+        px, the flag at 96x72 0.101 / 0.186 at 0.33 / 0.51 px).  A slip at a frame where the
+        plane faces the camera (``plane_crossings``) leaves the rest of the batch reflected
+        with little evidence in the unrefined image, so the refinement also starts from the
+        batch reflected after each such frame (the 300-frame sheet at 30 deg: its third batch
+        0.78 px as-is, 0.36 px from its crossing)."""
         intrinsics = self._intrinsics
         assert intrinsics is not None
         signs = frame_reflections(frame_errors(res, W, V, *intrinsics), per_frame=True)
         starts = [res] + ([reflect_frames(res, signs)] if (signs < 0).any() else [])
+        after = np.arange(res.S.shape[0])
+        starts += [reflect_frames(res, np.where(after > c, -1.0, 1.0))
+                   for c in plane_crossings(res.R)]
         done = [r for r in (refine_planar_pinhole(s, W, V, *intrinsics) for s in starts)
                 if not any(r is s for s in starts)]
         if not done:
