@@ -351,6 +351,24 @@ def test_input_queue_depth_by_qos_and_keep_latest():
     assert dropped.count('image') == 3 and dropped.count('points') == 1
 
 
+def _spun(ex, node, probe) -> threading.Thread:
+    """``ex`` with both nodes, spinning in its own thread (as a node's main spins)."""
+    ex.add_node(node)
+    ex.add_node(probe)
+    spinner = threading.Thread(target=ex.spin, daemon=True)
+    spinner.start()
+    return spinner
+
+
+def _stop_spun(ex, spinner, node, probe) -> None:
+    """Stop an executor spun in its own thread, the node's worker, and both nodes."""
+    ex.shutdown()
+    spinner.join(5)
+    node.queue.close()
+    node.destroy_node()
+    probe.destroy_node()
+
+
 def test_a_state_input_keeps_its_newest_message_in_place_uncounted():
     """A ``latest`` kind (CameraInfo, sent with every image): a new message replaces the one
     still queued, in its place (it applies no later than that one would have), and is not a
@@ -407,10 +425,7 @@ def test_reconstructor_node_loses_no_tracks_while_it_solves(rclpy_context):
     pub = probe.create_publisher(PointCloud2, 'nrsfm/tracks', RELIABLE)
     info = probe.create_publisher(CameraInfo, 'camera/camera_info', SENSOR)
     ex = SingleThreadedExecutor(context=rclpy_context)
-    ex.add_node(node)
-    ex.add_node(probe)
-    spinner = threading.Thread(target=ex.spin, daemon=True)
-    spinner.start()
+    spinner = _spun(ex, node, probe)
     try:
         end = time.monotonic() + 10
         while (pub.get_subscription_count() < 1 or info.get_subscription_count() < 1) and \
@@ -427,11 +442,7 @@ def test_reconstructor_node_loses_no_tracks_while_it_solves(rclpy_context):
                 len([h for h in handled if h[0] == 'tracks']) + node.processor.stats.dropped < 151:
             time.sleep(0.05)
     finally:
-        ex.shutdown()
-        spinner.join(5)
-        node.queue.close()
-        node.destroy_node()
-        probe.destroy_node()
+        _stop_spun(ex, spinner, node, probe)
     assert node.processor.stats.dropped == 0
     assert [n for k, n in handled if k == 'tracks'] == list(range(151))
     assert node.queue_depth('tracks') == 240 and 'camera_info' in node.queue.latest
@@ -467,13 +478,10 @@ def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):
     fac = RclpyFactory()
     frame = np.zeros((48, 64, 3), np.uint8)
     ex = make_executor(node, rclpy_context)          # the executor the node's main uses
-    ex.add_node(node)
-    ex.add_node(probe)
     # spun in its own thread as the nodes' main does (executor.spin()): on some machines rclpy's
     # multi-threaded executor driven by spin_once from a test thread took the frames so late
     # that DDS overwrote half of them unreported
-    spinner = threading.Thread(target=ex.spin, daemon=True)
-    spinner.start()
+    spinner = _spun(ex, node, probe)
     try:
         end = time.monotonic() + 10
         while pub.get_subscription_count() < 1 and time.monotonic() < end:
@@ -503,11 +511,7 @@ def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):
                 len(waited) + node.processor.stats.dropped - dropped0 < 40:
             time.sleep(0.05)
     finally:
-        ex.shutdown()
-        spinner.join(5)
-        node.queue.close()
-        node.destroy_node()
-        probe.destroy_node()
+        _stop_spun(ex, spinner, node, probe)
     dropped = node.processor.stats.dropped - dropped0
     assert node.queue_depth('image') == 1
     assert 3 <= len(waited) <= 20 and dropped >= 15
