@@ -185,21 +185,10 @@ def frame_errors(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
     perspective camera with its own depths and with the frame's depths reflected about its
     centroid (which the orthographic camera cannot tell apart), each with its best image
     translation."""
+    from ._pinhole_kernels import frame_error_table
     focal, principal = check_intrinsics(focal, principal)
-    F, P = V.shape
-    x = res.S[:, :, :2] * res.scale[:, None, None]                 # (F, P, 2) image units
-    z = res.S[:, :, 2] * res.scale[:, None]                        # (F, P)
-    w = W.reshape(F, 2, P).transpose(0, 2, 1)                      # (F, P, 2)
-    c = principal[None, None, :]
-    out = np.empty((F, 2))
-    for k, sign in enumerate((1.0, -1.0)):
-        a = 1.0 / np.clip(1.0 + sign * z / focal, *RATIO_RANGE)    # (F, P)
-        r0 = c + (x + res.t[:, None, :] - c) * a[:, :, None] - w
-        t = -(V[:, :, None] * a[:, :, None] * r0).sum(1) / \
-            np.maximum((V * a * a).sum(1), 1e-12)[:, None]          # (F, 2) best shift
-        e = np.linalg.norm(r0 + t[:, None, :] * a[:, :, None], axis=2)
-        out[:, k] = (e * V).sum(1) / np.maximum(V.sum(1), 1e-12)
-    return out
+    f64 = (np.ascontiguousarray(a, np.float64) for a in (res.S, res.scale, res.t, W, V))
+    return frame_error_table(*f64, focal, principal[0], principal[1], *RATIO_RANGE)
 
 
 def frame_reflections(errors: np.ndarray, per_frame: bool = False,

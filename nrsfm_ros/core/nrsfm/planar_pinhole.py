@@ -34,6 +34,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ._pinhole_kernels import (cauchy_weights, height_terms, pose_normal_equations,
+                               reprojection_loss, rest_coordinates)
 from ._planar_kernels import final_passes
 from .extend import spread_subset
 from .perspective import check_intrinsics
@@ -65,49 +67,28 @@ def pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np
                steps: int) -> tuple[np.ndarray, np.ndarray]:
     """``steps`` Gauss-Newton steps on the reprojection error of object points O (F, P, 3)
     posed as ``R_f O + T_f`` against normalised image points m (F, P, 2) with weights
-    w (F, P), all frames (or, for ``dspr``, all candidate shapes) at once: (R, T)."""
-    F, P = w.shape
-    J = np.empty((F, 6, 2, P))          # per frame, parameter, image axis, point: contiguous
-    r = np.empty((F, 2, P))             # rows for the (6 x 2P) @ (2P x 6) products
+    w (F, P), all frames (or, for ``dspr``, all candidate shapes) at once: (R, T).  The normal
+    equations in one pass over each frame's points (``_pinhole_kernels``)."""
+    O, m, w = _f64(O, m, w)
     for _ in range(steps):
-        RO = O @ R.transpose(0, 2, 1)
-        a, b, c = RO[..., 0], RO[..., 1], RO[..., 2]
-        X, Y, Z = a + T[:, 0, None], b + T[:, 1, None], c + T[:, 2, None]
-        front = Z > 1e-6
-        iz = np.where(front, 1.0 / np.where(front, Z, 1.0), 0.0)
-        ww = w * front
-        wz = ww * iz
-        gx, gy = -X * iz * wz, -Y * iz * wz       # weighted d(u)/dZ, d(v)/dZ
-        r[:, 0] = (X * iz - m[..., 0]) * ww
-        r[:, 1] = (Y * iz - m[..., 1]) * ww
-        # d(projection)/d(pose): u = X / Z with dX, dY, dZ / d(rotation) the rows of -[RO]x,
-        # (0, c, -b), (-c, 0, a), (b, -a, 0), and the identity for the translation
-        J[:, 0, 0], J[:, 1, 0], J[:, 2, 0] = gx * b, wz * c - gx * a, -wz * b
-        J[:, 3, 0], J[:, 4, 0], J[:, 5, 0] = wz, 0.0, gx
-        J[:, 0, 1], J[:, 1, 1], J[:, 2, 1] = gy * b - wz * c, -gy * a, wz * a
-        J[:, 3, 1], J[:, 4, 1], J[:, 5, 1] = 0.0, wz, gy
-        Jf = J.reshape(F, 6, 2 * P)
-        JtJ = Jf @ Jf.transpose(0, 2, 1) + 1e-12 * np.eye(6)
-        Jtr = Jf @ r.reshape(F, 2 * P, 1)
-        d = np.linalg.solve(JtJ, -Jtr)[..., 0]
+        JtJ, Jtr = pose_normal_equations(O, m, w, np.ascontiguousarray(R, np.float64),
+                                         np.ascontiguousarray(T, np.float64))
+        d = np.linalg.solve(JtJ + 1e-12 * np.eye(6), -Jtr[..., None])[..., 0]
         R = Rotation.from_rotvec(d[:, :3]).as_matrix() @ R
         T = T + d[:, 3:]
     return R, T
+
+
+def _f64(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    return tuple(np.ascontiguousarray(a, np.float64) for a in arrays)
 
 
 def _reprojection(X: np.ndarray, m: np.ndarray, w: np.ndarray, robust: float = 0.0
                  ) -> float:
     """Visibility-weighted mean distance (normalised image units) of X's image from m;
     ``robust`` > 0: the mean Cauchy loss of that distance at that scale (the same units), which
-    a few gross track errors do not dominate."""
-    z = X[..., 2:3]
-    if not (z > 0).all():
-        return np.inf
-    e = np.linalg.norm(X[..., :2] / z - m, axis=2)
-    if robust > 0:
-        e = robust * np.log1p((e / robust) ** 2)
-    return float((e * w).sum() / max(w.sum(), 1e-12))
-
+    a few gross track errors do not dominate; inf where a point is not in front."""
+    return reprojection_loss(*_f64(X, m, w), float(robust))
 
 def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Object frame from frame 0's principal axes; per frame the rotation aligning frame 0's
@@ -128,28 +109,18 @@ def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return R, T, C0 @ R
 
 
-def _cauchy(pts: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray, w0: np.ndarray,
-            robust: float) -> np.ndarray:
+def _cauchy(rest: np.ndarray, h: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray,
+            w0: np.ndarray, robust: float) -> np.ndarray:
     """Weights w0 x the Cauchy weight at scale ``robust`` (normalised units) of each point's
-    reprojection error."""
-    X = pts @ R.transpose(0, 2, 1) + T[:, None]
-    e = np.linalg.norm(X[..., :2] / np.maximum(X[..., 2:3], 1e-6) - m, axis=2)
-    return w0 / (1.0 + (e / robust) ** 2)
-
+    reprojection error, the points (rest, h) posed by R, T."""
+    return cauchy_weights(*_f64(rest, h, R, T, m, w0), float(robust))
 
 def _height_terms(rays: np.ndarray, R: np.ndarray, T: np.ndarray, rest: np.ndarray,
                   w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The algebraic error of X = A + h n (A the rest point posed, n the normal) is
     |m x A + h m x n|^2 = gg h^2 + 2 ga h + const: (gg, ga), each (F, P), weighted.  By
-    (m x a) . (m x b) = |m|^2 a . b - (m . a)(m . b): no (F, P, 3) cross products."""
-    A = rest @ R[:, :, :2].transpose(0, 2, 1) + T[:, None]                # (F, P, 3)
-    n = R[:, :, 2]                                                        # (F, 3) unit
-    mm = (rays * rays).sum(2)
-    mn = rays @ n[:, :, None]                                             # (F, P, 1)
-    gg = mm - mn[..., 0] ** 2
-    ga = mm * (A @ n[:, :, None])[..., 0] - mn[..., 0] * (rays * A).sum(2)
-    return gg * w, ga * w
-
+    (m x a) . (m x b) = |m|^2 a . b - (m . a)(m . b): no cross products."""
+    return height_terms(*_f64(rays, R, T, rest, w))
 
 def _solve_B(gg: np.ndarray, ga: np.ndarray, Cf: np.ndarray, ridge: float) -> np.ndarray:
     """Point basis B (K, P) of the heights h = C B minimising sum gg h^2 + 2 ga h, C given."""
@@ -174,24 +145,7 @@ def _solve_rest(rays: np.ndarray, R: np.ndarray, T: np.ndarray, h: np.ndarray, w
     given (a 2 x 2 system per point; a point without enough views keeps ``rest``).  The error
     is |m x (x e1 + y e2 + c)|^2 with e1, e2 the plane's axes in the camera and c = h n + T;
     its normal equations by the same identity as in ``_height_terms``."""
-    mm = (rays * rays).sum(2)                                             # (F, P)
-    me = rays @ R[:, :, :2]                                               # (F, P, 2): m . e_k
-    c = h[..., None] * R[:, None, :, 2] + T[:, None]                      # (F, P, 3)
-    mc = (rays * c).sum(2)
-    e1e2 = (R[:, :, 0] * R[:, :, 1]).sum(1)[:, None]                      # ~0 (orthonormal)
-    ec = c @ R[:, :, :2]                                                  # (F, P, 2): e_k . c
-    a11 = (w * (mm - me[..., 0] ** 2)).sum(0)
-    a22 = (w * (mm - me[..., 1] ** 2)).sum(0)
-    a12 = (w * (mm * e1e2 - me[..., 0] * me[..., 1])).sum(0)
-    b1 = -(w * (mm * ec[..., 0] - me[..., 0] * mc)).sum(0)
-    b2 = -(w * (mm * ec[..., 1] - me[..., 1] * mc)).sum(0)
-    det = a11 * a22 - a12 ** 2
-    ok = det > 1e-12 * np.maximum(a11 * a22, 1e-300)
-    rest = rest.copy()
-    rest[ok, 0] = (a22 * b1 - a12 * b2)[ok] / det[ok]
-    rest[ok, 1] = (a11 * b2 - a12 * b1)[ok] / det[ok]
-    return rest
-
+    return rest_coordinates(*_f64(rays, R, T, h, w, rest))
 
 def _posed(rest: np.ndarray, h: np.ndarray) -> np.ndarray:
     F, P = h.shape
@@ -207,7 +161,7 @@ def _fit(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray, rest: n
     for rnd in range(rounds):
         pts = _posed(rest, h)
         if robust > 0 and rnd > 0:
-            w = _cauchy(pts, R, T, m, w0, robust)
+            w = _cauchy(rest, h, R, T, m, w0, robust)
         R, T = pose_steps(pts, m, w, R, T, POSE_STEPS)
         gg, ga = _height_terms(rays, R, T, rest, w)
         if Cf is None:
