@@ -136,12 +136,13 @@ def height_field(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray) -> np.ndarray:
     F, P = V.shape
     Wf = Wc.reshape(F, 2, P)
     A = R2[:, :, :2]
+    # the sums over frames as BLAS products (three-operand einsums run unblocked)
     G = np.einsum('fki,fkj->fij', A, A)
-    lhs = np.einsum('fp,fij->pij', V, G) + 1e-12 * np.eye(2)
-    rhs = np.einsum('fp,fki,fkp->pi', V, A, Wf)
+    lhs = (V.T @ G.reshape(F, 4)).reshape(P, 2, 2) + 1e-12 * np.eye(2)
+    rhs = (V[:, None, :] * Wf).reshape(2 * F, P).T @ A.reshape(2 * F, 2)     # (P, 2)
     s0 = np.linalg.solve(lhs, rhs[:, :, None])[:, :, 0].T           # (2, P)
     v = R2[:, :, 2]
-    h = np.einsum('fk,fkp->fp', v, Wf - A @ s0) / np.maximum((v ** 2).sum(1), 1e-12)[:, None]
+    h = (v[:, :, None] * (Wf - A @ s0)).sum(1) / np.maximum((v ** 2).sum(1), 1e-12)[:, None]
     return np.concatenate([np.broadcast_to(s0, (F, 2, P)), h[:, None]], axis=1)
 
 

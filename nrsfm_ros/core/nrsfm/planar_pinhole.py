@@ -99,7 +99,7 @@ def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     axes = np.linalg.svd(C0[0] - C0[0].mean(0), full_matrices=False)[2]
     if np.linalg.det(axes) < 0:
         axes[2] *= -1
-    H = np.einsum('fpi,pj->fij', C0, C0[0])
+    H = C0.transpose(0, 2, 1) @ C0[0]
     u, _, vt = np.linalg.svd(H)
     sign = np.sign(np.linalg.det(u @ vt))
     D = np.zeros((X0.shape[0], 3, 3))
