@@ -156,7 +156,7 @@ def _fit(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray, rest: n
          h: np.ndarray, rounds: int, rank: int, robust: float
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The rounds of the module docstring on the points given: (R, T, C, B, rest)."""
-    m = rays[..., :2]
+    m = np.ascontiguousarray(rays[..., :2])     # (the kernels take contiguous arrays)
     w, Cf = w0, None
     for rnd in range(rounds):
         pts = _posed(rest, h)
@@ -201,8 +201,8 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     F, P = V.shape
     if not (np.isfinite(res.S).all() and np.isfinite(res.t).all()) or F < 3:
         return res
-    w0 = (V >= 0.5).astype(np.float64)
-    m = (W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal        # (F, P, 2) rays
+    w0 = np.ascontiguousarray(V >= 0.5, np.float64)
+    m = np.ascontiguousarray((W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal)
     rays = np.concatenate([m, np.ones((F, P, 1))], 2)
     X = res.S * res.scale[:, None, None] / focal                           # relative to depth
     X0 = np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
@@ -215,8 +215,8 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
     rank = min(rank, F, P)
     idx = spread_subset(P, max_tracks)
-    R, T, Cf, Bp, rest_sub = _fit(rays[:, idx], w0[:, idx], R, T, rest[idx], h[:, idx],
-                                  rounds, rank, robust)
+    sub = (np.ascontiguousarray(a[:, idx]) for a in (rays, w0))   # (a[:, idx] is strided)
+    R, T, Cf, Bp, rest_sub = _fit(*sub, R, T, rest[idx], h[:, idx], rounds, rank, robust)
     if idx.size < P:                  # every track from the subset's poses and C
         rest, hT = final_passes(np.ascontiguousarray(rays.transpose(1, 0, 2)),
                                 np.ascontiguousarray(w0.T), R, T, np.ascontiguousarray(Cf),
