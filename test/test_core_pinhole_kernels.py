@@ -171,3 +171,22 @@ def test_planar_round_terms_equal_the_array_form():
                                atol=1e-12)
     assert (got[0] == start[0]).all()
     assert np.median(np.abs(got[1:] - rest[1:])) < 0.02      # near the truth despite noise
+
+
+def test_posed_residuals_equal_the_array_form():
+    from nrsfm_ros.core.nrsfm.dspr import _pinhole_residual
+    rng = np.random.default_rng(4)
+    K, P, focal = 4, 300, 400.0
+    O = rng.standard_normal((K, P, 3)) * 0.1
+    R = Rotation.random(K, random_state=5).as_matrix()
+    T = np.array([0.0, 0.0, 1.5]) + rng.standard_normal((K, 3)) * 0.05
+    m = rng.standard_normal((P, 2)) * 0.1
+    v = rng.uniform(0.0, 1.0, P)
+    T[3, 2] = -1.0                      # the last state behind the camera
+    X = O @ R.transpose(0, 2, 1) + T[:, None]
+    z = X[..., 2]
+    e2 = ((X[..., :2] / np.where(z > 0, z, 1.0)[..., None] - m) ** 2).sum(2) * focal ** 2
+    want = np.where((z > 0).all(1), np.sqrt((e2 * v).sum(1) / v.sum()), np.inf)
+    got = _pinhole_residual(O, R, T, m, v, focal)
+    np.testing.assert_allclose(got[:3], want[:3], rtol=1e-12)
+    assert np.isinf(got[3]) and np.isinf(want[3]) and np.isfinite(got[:3]).all()

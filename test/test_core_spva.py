@@ -53,6 +53,69 @@ def occluded():
     return d
 
 
+def numpy_admm(prior, X, uv, v, g, R2, s, t, iterations, duals):
+    """The in-place NumPy form of ShapePrior._admm that the numba loop replaced."""
+    from nrsfm_ros.core.nrsfm.spva import EPS_PX, RHO, RHO_TV
+    vs = v * s * s
+    pg = prior.gamma * g
+    cp = RHO + RHO_TV * prior.L + pg
+    inv = (1.0 / cp)[:, None]
+    gain = (1.0 / (cp + vs) - 1.0 / cp)[:, None]
+    base = (((uv - t) / s) @ R2) * vs[:, None] + pg[:, None] * prior.T
+    RR = R2.T @ R2
+    keep = RHO / (RHO + prior.lam)
+    tv_lin = RHO_TV * prior.L
+    thresh = prior.mu / RHO_TV
+    floor = EPS_PX / (EPS_PX + thresh)
+    D, Dt, B = prior.D, prior.D.T.tocsr(), prior.B
+    X = X.copy()
+    GX = D @ X
+    if duals is not None:
+        U, U2 = (a.copy() for a in duals)
+        Z, Q = X + U, GX + U2
+    else:
+        Z, U = X.copy(), np.zeros_like(X)
+        Q, U2 = GX.copy(), np.zeros_like(GX)
+    for _ in range(iterations):
+        GX = GX - Q + U2
+        rhs = (Z - U) * RHO + base - RHO_TV * (Dt @ GX) + tv_lin * X
+        X = rhs * inv + (rhs @ RR) * gain
+        Z = X + U
+        proj = (B @ Z.reshape(-1)) @ B
+        Z = Z * keep + (1.0 - keep) * proj.reshape(X.shape)
+        GX = D @ X
+        Q = GX + U2
+        if prior.mu:
+            n = np.maximum(np.sqrt((Q * Q).sum(1)), 1e-300)
+            Q = Q * np.maximum(1.0 - thresh / n, floor)[:, None]
+        U = U + X - Z
+        U2 = U2 + GX - Q
+    return X, (U, U2)
+
+
+@pytest.mark.parametrize('smoothness', [0.05, 0.0])
+def test_the_per_frame_admm_equals_its_array_form(occluded, smoothness):
+    d = occluded
+    prior = ShapePrior.from_batch(d['cdf'], d['W'], d['V'], smoothness=smoothness)
+    rng = np.random.default_rng(0)
+    P = prior.T.shape[0]
+    R2 = np.linalg.qr(rng.standard_normal((3, 3)))[0][:2]
+    X0 = prior.T + rng.standard_normal((P, 3)) * 0.05 * prior.T.std()
+    uv = 1.3 * X0 @ R2.T + [5.0, -3.0] + rng.standard_normal((P, 2)) * 0.5
+    v = np.where(rng.random(P) < 0.2, 0.25, 1.0)
+    g = prior_weights(v[None], 'pixel')[0]
+    duals = None
+    for _ in range(2):                   # cold, then warm from the first solve's duals
+        want, duals_want = numpy_admm(prior, X0, uv, v, g, R2, 1.3, np.array([5.0, -3.0]), 4,
+                                      duals)
+        got = prior._admm(X0, uv, v, g, R2, 1.3, np.array([5.0, -3.0]), 4)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * np.abs(want).max())
+        for a, b in zip(prior._duals, duals_want):
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+        duals = tuple(a.copy() for a in prior._duals)
+    assert np.abs(got - X0).max() > 1e-3 * np.abs(X0).max()      # the steps moved the shape
+
+
 def test_total_intensity_criterion_picks_the_least_occluded_frames():
     V = np.ones((8, 50))
     V[[1, 2, 5], :20] = 0.0              # heavily occluded

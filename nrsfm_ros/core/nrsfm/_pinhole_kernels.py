@@ -241,3 +241,33 @@ def rest_coordinates(rays: np.ndarray, R: np.ndarray, T: np.ndarray, h: np.ndarr
             out[p, 0] = (a22[p] * b1[p] - a12[p] * b2[p]) / det
             out[p, 1] = (a11[p] * b2[p] - a12[p] * b1[p]) / det
     return out
+
+
+@njit(cache=True, nogil=True)
+def posed_residuals(O: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray,
+                    v: np.ndarray, focal: float) -> np.ndarray:
+    """``dspr._pinhole_residual``: (K,) the v-weighted RMS pixel error of each state O[k]
+    (P, 3) posed by R[k], T[k] against the normalised points m (P, 2); inf where a point of
+    the state is not in front of the camera."""
+    K, P, _ = O.shape
+    out = np.empty(K)
+    vsum = 0.0
+    for p in range(P):
+        vsum += v[p]
+    for k in range(K):
+        r00, r01, r02 = R[k, 0, 0], R[k, 0, 1], R[k, 0, 2]
+        r10, r11, r12 = R[k, 1, 0], R[k, 1, 1], R[k, 1, 2]
+        r20, r21, r22 = R[k, 2, 0], R[k, 2, 1], R[k, 2, 2]
+        acc = 0.0
+        front = True
+        for p in range(P):
+            o0, o1, o2 = O[k, p, 0], O[k, p, 1], O[k, p, 2]
+            z = r20 * o0 + r21 * o1 + r22 * o2 + T[k, 2]
+            if not z > 0.0:
+                front = False
+                break
+            du = (r00 * o0 + r01 * o1 + r02 * o2 + T[k, 0]) / z - m[p, 0]
+            dv = (r10 * o0 + r11 * o1 + r12 * o2 + T[k, 1]) / z - m[p, 1]
+            acc += (du * du + dv * dv) * focal ** 2 * v[p]
+        out[k] = np.sqrt(acc / vsum) if front else np.inf
+    return out

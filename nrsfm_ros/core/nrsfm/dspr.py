@@ -238,13 +238,11 @@ def fit_states_pinhole(states: np.ndarray, uv: np.ndarray, v: np.ndarray, focal:
 
 def _pinhole_residual(O: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray,
                       v: np.ndarray, focal: float) -> np.ndarray:
-    """(K,) weighted RMS pixel error of the posed states (inf where a point is behind)."""
-    X = O @ R.transpose(0, 2, 1) + T[:, None]
-    z = X[..., 2]
-    front = (z > 0).all(axis=1)
-    e2 = ((X[..., :2] / np.where(z > 0, z, 1.0)[..., None] - m) ** 2).sum(2) * focal ** 2
-    resid = np.sqrt((e2 * v).sum(1) / v.sum())
-    return np.where(front, resid, np.inf)
+    """(K,) weighted RMS pixel error of the posed states (inf where a point is behind), in one
+    pass over each state's points (``_pinhole_kernels``)."""
+    from ._pinhole_kernels import posed_residuals
+    O, R, T, m, v = (np.ascontiguousarray(a, np.float64) for a in (O, R, T, m, v))
+    return posed_residuals(O, R, T, m, v, float(focal))
 
 
 def shape_distance(X: np.ndarray, states: np.ndarray, centred: bool = False,

@@ -157,7 +157,11 @@ class ShapePrior:
         _, _, Vt = np.linalg.svd(aligned.reshape(F0, 3 * P), full_matrices=False)
         self.B = Vt[:self.rank]                                            # (K, 3P) orthonormal
         self.D = grid_graph(ref, neighbours)
-        self.Dt = self.D.T.tocsr()
+        coo = self.D.tocoo()                   # row e: +1 at ei[e], -1 at ej[e]
+        ei, ej = np.empty(self.D.shape[0], np.intp), np.empty(self.D.shape[0], np.intp)
+        ei[coo.row[coo.data > 0]] = coo.col[coo.data > 0]
+        ej[coo.row[coo.data < 0]] = coo.col[coo.data < 0]
+        self._edges = (ei, ej)
         self.L = _norm2(self.D)
         self._last = self.T.copy()         # the previous frame's shape: its camera's start
         self._duals: tuple[np.ndarray, np.ndarray] | None = None   # ADMM's, for the next solve
@@ -221,63 +225,26 @@ class ShapePrior:
 
     def _admm(self, X: np.ndarray, uv: np.ndarray, v: np.ndarray, g: np.ndarray,
               R2: np.ndarray, s: float, t: np.ndarray, iterations: int) -> np.ndarray:
-        """``iterations`` linearised ADMM steps from X for the fixed camera (R2, s, t); the
-        loop works in place on a few (P, 3) / (E, 3) buffers (the per-frame latency)."""
+        """``iterations`` linearised ADMM steps from X for the fixed camera (R2, s, t), as one
+        numba loop over the points and the grid's edges (``_spva_kernels``: the per-frame
+        latency)."""
+        from ._spva_kernels import spva_admm
         vs = v * s * s                                                     # data weight
         pg = self.gamma * g
         cp = RHO + RHO_TV * self.L + pg                                    # (P,)
-        inv = (1.0 / cp)[:, None]
-        gain = (1.0 / (cp + vs) - 1.0 / cp)[:, None]
+        inv = 1.0 / cp
+        gain = 1.0 / (cp + vs) - 1.0 / cp
         base = (((uv - t) / s) @ R2) * vs[:, None] + pg[:, None] * self.T  # (P, 3)
-        RR = R2.T @ R2                                                     # (3, 3)
-        keep = RHO / (RHO + self.lam)
-        tv_lin = RHO_TV * self.L
-        thresh = self.mu / RHO_TV
-        floor = EPS_PX / (EPS_PX + thresh)
-        D, Dt, B = self.D, self.Dt, self.B
-        X = X.copy()
-        GX = D @ X
+        X = np.array(X, dtype=np.float64)                                  # (a new buffer)
+        ei, ej = self._edges
         if self._duals is not None:            # warm start: the last solve's scaled duals
             U, U2 = self._duals                # (its own buffers, no one else holds them)
-            Z = X + U
-            Q = GX + U2
         else:
-            Z, U = X.copy(), np.zeros_like(X)
-            Q, U2 = GX.copy(), np.zeros_like(GX)
-        for _ in range(iterations):
-            GX -= Q
-            GX += U2                                   # D X - Q + U2
-            rhs = Z - U
-            rhs *= RHO
-            rhs += base
-            dv = Dt @ GX
-            dv *= RHO_TV
-            rhs -= dv
-            rhs += tv_lin * X
-            np.multiply(rhs, inv, out=X)
-            rr = rhs @ RR
-            rr *= gain
-            X += rr                                    # the per-pixel 3 x 3 inverse
-            np.add(X, U, out=Z)                        # y = X + U
-            proj = (B @ Z.reshape(-1)) @ B
-            Z *= keep
-            Z += (1.0 - keep) * proj.reshape(X.shape)  # subspace kept, the rest shrunk
-            GX = D @ X
-            np.add(GX, U2, out=Q)
-            if self.mu:     # group Huber shrinkage per edge: max(1 - t / |q|, eps / (eps + t))
-                n = Q[:, 0] * Q[:, 0]
-                n += Q[:, 1] * Q[:, 1]
-                n += Q[:, 2] * Q[:, 2]
-                np.sqrt(n, out=n)
-                np.maximum(n, 1e-300, out=n)
-                np.divide(-thresh, n, out=n)
-                n += 1.0
-                np.maximum(n, floor, out=n)
-                Q *= n[:, None]
-            U += X
-            U -= Z
-            U2 += GX
-            U2 -= Q
+            U, U2 = np.zeros_like(X), np.zeros((ei.size, 3))
+        thresh = self.mu / RHO_TV
+        spva_admm(X, U, U2, np.ascontiguousarray(base), inv, gain, R2.T @ R2, self.B, ei, ej,
+                  RHO / (RHO + self.lam), RHO_TV * self.L, thresh, EPS_PX / (EPS_PX + thresh),
+                  bool(self.mu), int(iterations), RHO, RHO_TV)
         self._duals = (U, U2)
         return X
 

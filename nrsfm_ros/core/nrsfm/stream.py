@@ -50,6 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..arrays import duplicates, sorted_unique
 from .dspr import DynamicShapePrior, necker_partner, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
@@ -402,7 +403,7 @@ class StreamNRSfM:
         vis = np.ones(ids.size) if visibility is None else np.asarray(visibility, np.float64)
         if vis.shape != (ids.size,):
             raise ValueError(f'visibility: expected shape ({ids.size},), got {vis.shape}')
-        if np.unique(ids).size != ids.size:
+        if duplicates(ids):
             raise ValueError('ids: duplicated track ids in one frame')
         fr = _Frame(self._count, ids, uv, np.clip(np.nan_to_num(vis), 0.0, 1.0))
         self._count += 1
@@ -477,7 +478,7 @@ class StreamNRSfM:
     def _tracks(frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """W (2F, P) and V (F, P) over the union of the frames' ids (absent = invisible),
         keeping tracks seen in at least ``MIN_OBSERVED`` frames; returns ids, W, V."""
-        all_ids = np.unique(np.concatenate([f.ids for f in frames]))
+        all_ids = sorted_unique(np.concatenate([f.ids for f in frames]))
         F, P = len(frames), all_ids.size
         W = np.zeros((2 * F, P))
         V = np.zeros((F, P))

@@ -90,6 +90,7 @@ from dataclasses import dataclass, field, fields, replace
 import cv2
 import numpy as np
 
+from ..arrays import duplicates
 from . import _refine_kernel
 from .reference_flow import check_grey, reference_pixels
 from .rules import PARAM_RULES, PRESETS, check_param
@@ -626,7 +627,7 @@ class MFOFTracker:
         xy = np.asarray(xy, np.float32).reshape(-1, 2)
         if ids.size != xy.shape[0]:
             raise ValueError(f'reselect: {ids.size} ids but {xy.shape[0]} positions')
-        if np.unique(ids).size != ids.size or not np.isin(ids, self.ids).all():
+        if duplicates(ids) or not np.isin(ids, self.ids).all():
             raise ValueError('reselect: ids must be unique current track ids')
         h, w = grey.shape
         if xy.size and not ((xy >= 0).all() and (xy[:, 0] <= w - 1).all()
