@@ -28,26 +28,22 @@ def spva_admm(X: np.ndarray, U: np.ndarray, U2: np.ndarray, base: np.ndarray,
     ``floor``)."""
     P = X.shape[0]
     E = ei.shape[0]
-    GX = np.empty((E, 3))
-    Q = np.empty((E, 3))
     Z = X + U
-    dv = np.empty((P, 3))
-    rhs = np.empty(3)
     Zf = Z.reshape(3 * P)
+    dv = np.zeros((P, 3))                        # Dt (D X - Q + U2) for the next step
+    rhs = np.empty(3)
     for e in range(E):
-        for c in range(3):
-            g = X[ei[e], c] - X[ej[e], c]
-            GX[e, c] = g
-            Q[e, c] = g + U2[e, c]
-    for _ in range(iterations):
-        dv[:] = 0.0
-        for e in range(E):                       # Dt (D X - Q + U2)
-            i, j = ei[e], ej[e]
-            for c in range(3):
-                g = GX[e, c] - Q[e, c] + U2[e, c]
-                dv[i, c] += g
-                dv[j, c] -= g
+        i, j = ei[e], ej[e]
+        for c in range(3):                       # Q = D X + U2: D X - Q + U2 = D X - D X
+            g = X[i, c] - X[j, c]
+            g = g - (g + U2[e, c]) + U2[e, c]
+            dv[i, c] += g
+            dv[j, c] -= g
+    for it in range(iterations):
         for p in range(P):
+            if it > 0:                           # the last step's U += X - Z, fused here
+                for c in range(3):
+                    U[p, c] = U[p, c] + X[p, c] - Z[p, c]
             for c in range(3):
                 r = (Z[p, c] - U[p, c]) * rho
                 r += base[p, c]
@@ -62,21 +58,27 @@ def spva_admm(X: np.ndarray, U: np.ndarray, U2: np.ndarray, base: np.ndarray,
         proj = np.dot(np.dot(B, Zf), B)          # subspace kept (BLAS), the rest shrunk
         for n in range(3 * P):
             Zf[n] = Zf[n] * keep + (1.0 - keep) * proj[n]
+        dv[:] = 0.0
         for e in range(E):
             i, j = ei[e], ej[e]
-            n2 = 0.0
-            for c in range(3):
-                g = X[i, c] - X[j, c]
-                GX[e, c] = g
-                q = g + U2[e, c]
-                Q[e, c] = q
-                n2 += q * q
+            gx0, gx1, gx2 = X[i, 0] - X[j, 0], X[i, 1] - X[j, 1], X[i, 2] - X[j, 2]
+            q0, q1, q2 = gx0 + U2[e, 0], gx1 + U2[e, 1], gx2 + U2[e, 2]
             if shrink:                           # group Huber: max(1 - t / |q|, eps / (eps + t))
+                n2 = q0 * q0
+                n2 += q1 * q1
+                n2 += q2 * q2
                 w = max(1.0 - thresh / max(np.sqrt(n2), 1e-300), floor)
-                for c in range(3):
-                    Q[e, c] *= w
-            for c in range(3):
-                U2[e, c] = U2[e, c] + GX[e, c] - Q[e, c]
+                q0, q1, q2 = q0 * w, q1 * w, q2 * w
+            u0, u1, u2 = U2[e, 0] + gx0 - q0, U2[e, 1] + gx1 - q1, U2[e, 2] + gx2 - q2
+            U2[e, 0], U2[e, 1], U2[e, 2] = u0, u1, u2
+            g0, g1, g2 = gx0 - q0 + u0, gx1 - q1 + u1, gx2 - q2 + u2   # the next step's
+            dv[i, 0] += g0
+            dv[i, 1] += g1
+            dv[i, 2] += g2
+            dv[j, 0] -= g0
+            dv[j, 1] -= g1
+            dv[j, 2] -= g2
+    if iterations > 0:
         for p in range(P):
             for c in range(3):
                 U[p, c] = U[p, c] + X[p, c] - Z[p, c]
