@@ -271,3 +271,40 @@ def posed_residuals(O: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray,
             acc += (du * du + dv * dv) * focal ** 2 * v[p]
         out[k] = np.sqrt(acc / vsum) if front else np.inf
     return out
+
+
+@njit(cache=True, nogil=True)
+def orthonormal_rows_fit(B: np.ndarray, C: np.ndarray, lam: np.ndarray, R2: np.ndarray,
+                         iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``dspr._fit``'s majorisation steps for every state k at once: from camera rows R2
+    (K, 2, 3), ``iterations`` times R2 <- polar(s B + s^2 R2 (lam I - C)) with the optimal
+    scale s = tr(R2 B^T) / tr(R2 C R2^T), the moments B (K, 2, 3), C (K, 3, 3) and C's
+    largest eigenvalue lam (K,) given.  Returns (R2, s, tr(R2 B^T))."""
+    K = B.shape[0]
+    R2 = R2.copy()
+    s = np.empty(K)
+    num = np.empty(K)
+    M = np.empty((2, 3))
+    for k in range(K):
+        for it in range(iterations + 1):
+            n = 0.0
+            d = 0.0
+            for i in range(2):
+                for a in range(3):
+                    n += R2[k, i, a] * B[k, i, a]
+                    for b in range(3):
+                        d += R2[k, i, a] * C[k, a, b] * R2[k, i, b]
+            s[k] = n / max(d, 1e-300)
+            num[k] = n
+            if it == iterations:
+                break
+            sk = s[k]
+            for i in range(2):
+                for b in range(3):
+                    acc = 0.0
+                    for a in range(3):
+                        acc += R2[k, i, a] * ((lam[k] if a == b else 0.0) - C[k, a, b])
+                    M[i, b] = sk * B[k, i, b] + sk * sk * acc
+            U, _, Vt = np.linalg.svd(M, full_matrices=False)
+            R2[k] = U @ Vt
+    return R2, s, num
