@@ -23,3 +23,9 @@ def duplicates(a: np.ndarray) -> int:
         return 0
     s = np.sort(a)
     return int(np.count_nonzero(s[1:] == s[:-1]))
+
+
+def contiguous64(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Each array as C-contiguous float64 (itself where it already is): the numba kernels'
+    argument form."""
+    return tuple(np.ascontiguousarray(a, np.float64) for a in arrays)

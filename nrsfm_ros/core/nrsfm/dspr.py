@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
+from ..arrays import contiguous64
 from .perspective import RATIO_RANGE
 from .extend import spread_subset
 from .planar_pinhole import pose_steps, stream_convention
@@ -134,8 +135,8 @@ def _fit(states: np.ndarray, uv: np.ndarray, v: np.ndarray) -> StateFit:
     # the majorisation steps, per state in one numba loop (8 steps of tiny NumPy calls were
     # ~1 ms of every call, three calls a frame in dspr and spva)
     from ._pinhole_kernels import orthonormal_rows_fit
-    R2, s, num = orthonormal_rows_fit(*(np.ascontiguousarray(a, np.float64) for a in (
-        B, C, np.linalg.eigvalsh(C)[:, -1], R2)), PROCRUSTES_ITERATIONS)
+    R2, s, num = orthonormal_rows_fit(*contiguous64(B, C, np.linalg.eigvalsh(C)[:, -1], R2),
+                                      PROCRUSTES_ITERATIONS)
     neg = s < 0                      # a mirrored image: flip the camera rows, keep s > 0
     if neg.any():
         R2 = np.where(neg[:, None, None], -R2, R2)
@@ -235,8 +236,7 @@ def _pinhole_residual(O: np.ndarray, R: np.ndarray, T: np.ndarray, m: np.ndarray
     """(K,) weighted RMS pixel error of the posed states (inf where a point is behind), in one
     pass over each state's points (``_pinhole_kernels``)."""
     from ._pinhole_kernels import posed_residuals
-    O, R, T, m, v = (np.ascontiguousarray(a, np.float64) for a in (O, R, T, m, v))
-    return posed_residuals(O, R, T, m, v, float(focal))
+    return posed_residuals(*contiguous64(O, R, T, m, v), float(focal))
 
 
 def shape_distance(X: np.ndarray, states: np.ndarray, centred: bool = False,

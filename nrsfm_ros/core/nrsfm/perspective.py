@@ -185,10 +185,11 @@ def frame_errors(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
     perspective camera with its own depths and with the frame's depths reflected about its
     centroid (which the orthographic camera cannot tell apart), each with its best image
     translation."""
+    from ..arrays import contiguous64
     from ._pinhole_kernels import frame_error_table
     focal, principal = check_intrinsics(focal, principal)
-    f64 = (np.ascontiguousarray(a, np.float64) for a in (res.S, res.scale, res.t, W, V))
-    return frame_error_table(*f64, focal, principal[0], principal[1], *RATIO_RANGE)
+    return frame_error_table(*contiguous64(res.S, res.scale, res.t, W, V), focal,
+                             principal[0], principal[1], *RATIO_RANGE)
 
 
 def frame_reflections(errors: np.ndarray, per_frame: bool = False,

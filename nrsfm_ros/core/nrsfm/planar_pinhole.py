@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..arrays import contiguous64
 from ._pinhole_kernels import (cauchy_weights, height_terms, pose_normal_equations,
                                reprojection_loss, rest_coordinates)
 from ._planar_kernels import final_passes
@@ -69,7 +70,7 @@ def pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np
     posed as ``R_f O + T_f`` against normalised image points m (F, P, 2) with weights
     w (F, P), all frames (or, for ``dspr``, all candidate shapes) at once: (R, T).  The normal
     equations in one pass over each frame's points (``_pinhole_kernels``)."""
-    O, m, w = _f64(O, m, w)
+    O, m, w = contiguous64(O, m, w)
     for _ in range(steps):
         JtJ, Jtr = pose_normal_equations(O, m, w, np.ascontiguousarray(R, np.float64),
                                          np.ascontiguousarray(T, np.float64))
@@ -79,16 +80,12 @@ def pose_steps(O: np.ndarray, m: np.ndarray, w: np.ndarray, R: np.ndarray, T: np
     return R, T
 
 
-def _f64(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    return tuple(np.ascontiguousarray(a, np.float64) for a in arrays)
-
-
 def _reprojection(X: np.ndarray, m: np.ndarray, w: np.ndarray, robust: float = 0.0
                  ) -> float:
     """Visibility-weighted mean distance (normalised image units) of X's image from m;
     ``robust`` > 0: the mean Cauchy loss of that distance at that scale (the same units), which
     a few gross track errors do not dominate; inf where a point is not in front."""
-    return reprojection_loss(*_f64(X, m, w), float(robust))
+    return reprojection_loss(*contiguous64(X, m, w), float(robust))
 
 def _start_pose(X0: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Object frame from frame 0's principal axes; per frame the rotation aligning frame 0's
@@ -113,14 +110,14 @@ def _cauchy(rest: np.ndarray, h: np.ndarray, R: np.ndarray, T: np.ndarray, m: np
             w0: np.ndarray, robust: float) -> np.ndarray:
     """Weights w0 x the Cauchy weight at scale ``robust`` (normalised units) of each point's
     reprojection error, the points (rest, h) posed by R, T."""
-    return cauchy_weights(*_f64(rest, h, R, T, m, w0), float(robust))
+    return cauchy_weights(*contiguous64(rest, h, R, T, m, w0), float(robust))
 
 def _height_terms(rays: np.ndarray, R: np.ndarray, T: np.ndarray, rest: np.ndarray,
                   w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The algebraic error of X = A + h n (A the rest point posed, n the normal) is
     |m x A + h m x n|^2 = gg h^2 + 2 ga h + const: (gg, ga), each (F, P), weighted.  By
     (m x a) . (m x b) = |m|^2 a . b - (m . a)(m . b): no cross products."""
-    return height_terms(*_f64(rays, R, T, rest, w))
+    return height_terms(*contiguous64(rays, R, T, rest, w))
 
 def _solve_B(gg: np.ndarray, ga: np.ndarray, Cf: np.ndarray, ridge: float) -> np.ndarray:
     """Point basis B (K, P) of the heights h = C B minimising sum gg h^2 + 2 ga h, C given."""
@@ -145,7 +142,7 @@ def _solve_rest(rays: np.ndarray, R: np.ndarray, T: np.ndarray, h: np.ndarray, w
     given (a 2 x 2 system per point; a point without enough views keeps ``rest``).  The error
     is |m x (x e1 + y e2 + c)|^2 with e1, e2 the plane's axes in the camera and c = h n + T;
     its normal equations by the same identity as in ``_height_terms``."""
-    return rest_coordinates(*_f64(rays, R, T, h, w, rest))
+    return rest_coordinates(*contiguous64(rays, R, T, h, w, rest))
 
 def _posed(rest: np.ndarray, h: np.ndarray) -> np.ndarray:
     F, P = h.shape
