@@ -478,15 +478,23 @@ class StreamNRSfM:
     def _tracks(frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """W (2F, P) and V (F, P) over the union of the frames' ids (absent = invisible),
         keeping tracks seen in at least ``MIN_OBSERVED`` frames; returns ids, W, V."""
-        all_ids = sorted_unique(np.concatenate([f.ids for f in frames]))
-        F, P = len(frames), all_ids.size
-        W = np.zeros((2 * F, P))
-        V = np.zeros((F, P))
-        for i, f in enumerate(frames):
-            col = np.searchsorted(all_ids, f.ids)
-            W[2 * i, col], W[2 * i + 1, col] = f.uv[:, 0], f.uv[:, 1]
-            # present but occluded: weakly kept (the low-rank model carries it)
-            V[i, col] = np.maximum(f.vis, 1e-3)
+        F, first = len(frames), frames[0].ids
+        if all(np.array_equal(f.ids, first) for f in frames[1:]) and \
+                bool((first[1:] > first[:-1]).all()):
+            # one ascending track set in every frame (a tracker that reports each track with
+            # its visibility): the columns are the frames' own order
+            all_ids = first
+            W = np.stack([f.uv.T for f in frames]).reshape(2 * F, first.size)
+            V = np.maximum(np.stack([f.vis for f in frames]), 1e-3)
+        else:
+            all_ids = sorted_unique(np.concatenate([f.ids for f in frames]))
+            W = np.zeros((2 * F, all_ids.size))
+            V = np.zeros((F, all_ids.size))
+            for i, f in enumerate(frames):
+                col = np.searchsorted(all_ids, f.ids)
+                W[2 * i, col], W[2 * i + 1, col] = f.uv[:, 0], f.uv[:, 1]
+                # present but occluded: weakly kept (the low-rank model carries it)
+                V[i, col] = np.maximum(f.vis, 1e-3)
         keep = (V >= 0.5).sum(axis=0) >= min(MIN_OBSERVED, F)
         if keep.sum() < 4:                      # nearly nothing visible: use what is there
             keep = V.sum(axis=0) > 0
@@ -965,13 +973,17 @@ class StreamNRSfM:
 
 def _depth_agreement(sh: StreamShape, ids: np.ndarray, X: np.ndarray) -> tuple[float, float]:
     """A published shape's centred depths against a solved frame's X (P, 3) over the tracks
-    they share (``ids`` label X's rows): their dot product and the product of their norms
-    (0.0, 0.0 where fewer than 4 are shared)."""
-    _, a, b = np.intersect1d(sh.ids, ids, assume_unique=True, return_indices=True)
-    if a.size < 4:
+    they share (``ids``, ascending, label X's rows): their dot product and the product of
+    their norms (0.0, 0.0 where fewer than 4 are shared)."""
+    if np.array_equal(sh.ids, ids):       # the same tracks (a window's frames, mostly)
+        za, zb = sh.X[:, 2], X[:, 2]
+    else:                                   # ids sorted: a search, not intersect1d's sorts
+        col, have = _lookup(ids, sh.ids)
+        za, zb = sh.X[have, 2], X[col[have], 2]
+    if za.size < 4:
         return 0.0, 0.0
-    za = sh.X[a, 2] - sh.X[a, 2].mean()
-    zb = X[b, 2] - X[b, 2].mean()
+    za = za - za.mean()
+    zb = zb - zb.mean()
     return float(za @ zb), float(np.linalg.norm(za) * np.linalg.norm(zb))
 
 
@@ -1003,6 +1015,8 @@ def _warm_start(prev_ids: np.ndarray, prev: NRSfMResult, ids: np.ndarray, W: np.
                 ) -> NRSfMResult:
     """The previous window's result on the new window's track set: shared tracks keep their
     shapes; a new track starts in its frames' image planes at the centroid depth."""
+    if np.array_equal(prev_ids, ids):       # the same track set (most frames): as it is
+        return prev
     F = prev.S.shape[0]
     col, have = _lookup(prev_ids, ids)
     S = np.empty((F, ids.size, 3))
