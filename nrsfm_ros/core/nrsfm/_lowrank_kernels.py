@@ -4,40 +4,15 @@
 window of ``online``): 15 frames x ~10k tracks, 10 warm iterations a frame.  Its NumPy form
 made ~40 passes over (F, 3, P) arrays an iteration: 141 ms of the window's ~170 ms a frame at
 320x240.  Here the shapes' closed-form step is one pass, and the cameras' Procrustes fit,
-the translations and the data error come from one pass of per-frame moments.  The rank-K
-shapes Z = A B (A (F, K), B (K, 3, P)) are never written out: each pass forms a point's z
-from the factors.  Serial and ``nogil`` as the other kernels.
+the translations and the data error come from one pass of per-frame moments (the rank-K
+projection between them stays two BLAS products).  ``fastmath``: the sums may be reordered
+(vectorised), which moves results by rounding only (test_core_lowrank_kernels.py).  Serial
+and ``nogil`` as the other kernels.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
-
-
-@njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _solve_point(u0: float, u1: float, v: float, z0: float, z1: float, z2: float,
-                 a: tuple, e: tuple, lam: tuple, rho: float) -> tuple[float, float, float]:
-    """argmin_s v ||u - sR s||^2 + rho ||s - z||^2 through the eigenbasis e of sR^T sR."""
-    a00, a01, a02, a10, a11, a12 = a
-    e00, e01, e02, e10, e11, e12, e20, e21, e22 = e
-    l0, l1, l2 = lam
-    r0 = (a00 * u0 + a10 * u1) * v + rho * z0
-    r1 = (a01 * u0 + a11 * u1) * v + rho * z1
-    r2 = (a02 * u0 + a12 * u1) * v + rho * z2
-    c0 = (e00 * r0 + e10 * r1 + e20 * r2) / (rho + l0 * v)
-    c1 = (e01 * r0 + e11 * r1 + e21 * r2) / (rho + l1 * v)
-    c2 = (e02 * r0 + e12 * r1 + e22 * r2) / (rho + l2 * v)
-    return (e00 * c0 + e01 * c1 + e02 * c2, e10 * c0 + e11 * c1 + e12 * c2,
-            e20 * c0 + e21 * c1 + e22 * c2)
-
-
-@njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _frame_terms(sR: np.ndarray, E: np.ndarray, lam: np.ndarray, f: int
-                 ) -> tuple[tuple, tuple, tuple]:
-    return ((sR[f, 0, 0], sR[f, 0, 1], sR[f, 0, 2], sR[f, 1, 0], sR[f, 1, 1], sR[f, 1, 2]),
-            (E[f, 0, 0], E[f, 0, 1], E[f, 0, 2], E[f, 1, 0], E[f, 1, 1], E[f, 1, 2],
-             E[f, 2, 0], E[f, 2, 1], E[f, 2, 2]),
-            (lam[f, 0], lam[f, 1], lam[f, 2]))
 
 
 @njit(cache=True, nogil=True, fastmath=True)
@@ -49,47 +24,37 @@ def shape_step(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, sR: np.ndarray, E:
     F, P = V.shape
     S = np.empty((F, 3, P))
     for f in range(F):
-        a, e, la = _frame_terms(sR, E, lam, f)
+        a00, a01, a02 = sR[f, 0, 0], sR[f, 0, 1], sR[f, 0, 2]
+        a10, a11, a12 = sR[f, 1, 0], sR[f, 1, 1], sR[f, 1, 2]
+        e00, e01, e02 = E[f, 0, 0], E[f, 0, 1], E[f, 0, 2]
+        e10, e11, e12 = E[f, 1, 0], E[f, 1, 1], E[f, 1, 2]
+        e20, e21, e22 = E[f, 2, 0], E[f, 2, 1], E[f, 2, 2]
+        l0, l1, l2 = lam[f, 0], lam[f, 1], lam[f, 2]
         t0, t1 = tn[f, 0], tn[f, 1]
         for p in range(P):
-            S[f, 0, p], S[f, 1, p], S[f, 2, p] = _solve_point(
-                Wf[f, 0, p] - t0, Wf[f, 1, p] - t1, V[f, p], Z[f, 0, p], Z[f, 1, p],
-                Z[f, 2, p], a, e, la, rho)
+            v = V[f, p]
+            u0 = Wf[f, 0, p] - t0
+            u1 = Wf[f, 1, p] - t1
+            r0 = (a00 * u0 + a10 * u1) * v + rho * Z[f, 0, p]
+            r1 = (a01 * u0 + a11 * u1) * v + rho * Z[f, 1, p]
+            r2 = (a02 * u0 + a12 * u1) * v + rho * Z[f, 2, p]
+            c0 = (e00 * r0 + e10 * r1 + e20 * r2) / (rho + l0 * v)
+            c1 = (e01 * r0 + e11 * r1 + e21 * r2) / (rho + l1 * v)
+            c2 = (e02 * r0 + e12 * r1 + e22 * r2) / (rho + l2 * v)
+            S[f, 0, p] = e00 * c0 + e01 * c1 + e02 * c2
+            S[f, 1, p] = e10 * c0 + e11 * c1 + e12 * c2
+            S[f, 2, p] = e20 * c0 + e21 * c1 + e22 * c2
     return S
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def shape_step_factored(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, sR: np.ndarray,
-                        E: np.ndarray, lam: np.ndarray, A: np.ndarray, B: np.ndarray,
-                        rho: float) -> np.ndarray:
-    """``shape_step`` with Z = A B given by its factors A (F, K), B (K, 3, P)."""
-    F, P = V.shape
-    K = A.shape[1]
-    S = np.empty((F, 3, P))
-    for f in range(F):
-        a, e, la = _frame_terms(sR, E, lam, f)
-        t0, t1 = tn[f, 0], tn[f, 1]
-        for p in range(P):
-            z0 = z1 = z2 = 0.0
-            for k in range(K):
-                c = A[f, k]
-                z0 += c * B[k, 0, p]
-                z1 += c * B[k, 1, p]
-                z2 += c * B[k, 2, p]
-            S[f, 0, p], S[f, 1, p], S[f, 2, p] = _solve_point(
-                Wf[f, 0, p] - t0, Wf[f, 1, p] - t1, V[f, p], z0, z1, z2, a, e, la, rho)
-    return S
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def frame_moments(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, A: np.ndarray, B: np.ndarray
+def frame_moments(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, Z: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                              np.ndarray]:
     """Visibility-weighted moments per frame of the centred tracks u = w - t (Wf (F, 2, P),
-    tn (F, 2)) and the shapes Z = A B (A (F, K), B (K, 3, P)): sum v (F,), sum v u (F, 2),
-    sum v |u|^2 (F,), sum v z (F, 3), sum v u z^T (F, 2, 3), sum v z z^T (F, 3, 3)."""
+    tn (F, 2)) and the shapes Z (F, 3, P): sum v (F,), sum v u (F, 2), sum v |u|^2 (F,),
+    sum v z (F, 3), sum v u z^T (F, 2, 3), sum v z z^T (F, 3, 3)."""
     F, P = V.shape
-    K = A.shape[1]
     n = np.zeros(F)
     su = np.zeros((F, 2))
     suu = np.zeros(F)
@@ -107,12 +72,7 @@ def frame_moments(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, A: np.ndarray, 
                 continue
             u0 = Wf[f, 0, p] - t0
             u1 = Wf[f, 1, p] - t1
-            z0 = z1 = z2 = 0.0
-            for k in range(K):
-                ck = A[f, k]
-                z0 += ck * B[k, 0, p]
-                z1 += ck * B[k, 1, p]
-                z2 += ck * B[k, 2, p]
+            z0, z1, z2 = Z[f, 0, p], Z[f, 1, p], Z[f, 2, p]
             vu0, vu1 = v * u0, v * u1
             vz0, vz1, vz2 = v * z0, v * z1, v * z2
             a += v

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..arrays import contiguous64
-from ._lowrank_kernels import frame_moments, mean_distance, shape_step, shape_step_factored
+from ._lowrank_kernels import frame_moments, mean_distance, shape_step
 from .result import NRSfMResult, check_tracks
 
 
@@ -358,19 +358,12 @@ def _object_frame(R: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def _rank_project(Ssharp: np.ndarray, rank: int) -> np.ndarray:
     """Best rank-K approximation of S# (F, 3P) through the smaller Gram matrix."""
-    A, B = _rank_factors(Ssharp, rank)
-    return A @ B
-
-
-def _rank_factors(Ssharp: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
-    """Best rank-K approximation of S# (F, 3P) as factors A (F, K) @ B (K, 3P), through the
-    smaller Gram matrix."""
     F, N = Ssharp.shape
     if F <= N:
         E = np.linalg.eigh(Ssharp @ Ssharp.T)[1][:, -rank:]
-        return np.ascontiguousarray(E), E.T @ Ssharp
+        return E @ (E.T @ Ssharp)
     E = np.linalg.eigh(Ssharp.T @ Ssharp)[1][:, -rank:]
-    return Ssharp @ E, np.ascontiguousarray(E.T)
+    return (Ssharp @ E) @ E.T
 
 
 def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iterations: int = 60,
@@ -404,7 +397,6 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
     Z = Z / unit
     Wf, V = contiguous64(Wn.reshape(F, 2, P), V)
     Z = np.ascontiguousarray(Z)
-    A = B = None
     prev = np.inf
     it = 0
     converged = False
@@ -413,14 +405,12 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
         # through each frame's eigenbasis of G = sR^T sR, rank 2)
         sR = R2 * scale[:, None, None]
         lam, E = np.linalg.eigh(np.einsum('fki,fkj->fij', sR, sR))
-        S = shape_step(Wf, V, tn, sR, E, lam, Z, rho) if A is None else \
-            shape_step_factored(Wf, V, tn, sR, E, lam, A, B, rho)
-        # (b) rank-K projection of S# (F x 3P), Z = A B kept as its factors
-        A, B = _rank_factors(S.reshape(F, 3 * P), rank)
-        B = B.reshape(-1, 3, P)
+        S = shape_step(Wf, V, tn, sR, E, lam, Z, rho)
+        # (b) rank-K projection of S# (F x 3P)
+        Z = _rank_project(S.reshape(F, 3 * P), rank).reshape(F, 3, P)
         # (c) cameras by Procrustes on the centred tracks u = w - t, (d) translations, and the
         # data error, all from per-frame moments of u and Z
-        n, su, suu, sz, suz, szz = frame_moments(Wf, V, tn, A, B)
+        n, su, suu, sz, suz, szz = frame_moments(Wf, V, tn, Z)
         ridge = (1e-12 * np.trace(szz, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(3)
         M = np.linalg.solve(szz + ridge, suz.transpose(0, 2, 1)).transpose(0, 2, 1)
         R2, scale = scaled_orthonormal(M)
@@ -437,8 +427,6 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
             converged = True
             break
         prev = err
-    if A is not None:
-        Z = (A @ B.reshape(-1, 3 * P)).reshape(F, 3, P)
     res = unit * mean_distance(Wf, V, tn, R2 * scale[:, None, None], Z)
     S = Z * unit
     R = complete_rotations(R2)
