@@ -199,3 +199,18 @@ def test_upgrade_validates_its_input():
         metric_upgrade(np.zeros((5, 3)))
     with pytest.raises(ValueError, match='max_depth_ratio'):
         metric_upgrade(np.eye(3)[:2].repeat(3, 0).reshape(6, 3), max_depth_ratio=0.0)
+
+
+def test_factorisations_name_a_frame_that_sees_nothing():
+    """A frame with every weight 0 leaves its camera undetermined: rigid and lowrank say which
+    frame (they used to fail in NumPy's SVD on its NaN translation), bmm fills it."""
+    W, _ = _wave_sheet(20.0, 0.1)
+    V = np.ones((W.shape[0] // 2, W.shape[1]))
+    V[7] = 0.0
+    for method in ('rigid', 'lowrank'):
+        with pytest.raises(ValueError, match=r'V: frame\(s\) \[7\] see no point'):
+            reconstruct(W, V, method=method)
+    res = reconstruct(W, V, method='bmm')
+    assert np.isfinite(res.S).all()
+    V[7, :5] = 1.0                         # a few points seen: solved
+    assert np.isfinite(reconstruct(W, V, method='rigid').S).all()

@@ -228,7 +228,7 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None, robust: float = 0.0,
     rigid shape cannot follow pull the shape less.  ``residual_px`` stays the mean distance
     under the given visibility."""
     t0 = time.perf_counter()
-    W, V = check_tracks(W, V)
+    W, V = _every_frame_seen(*check_tracks(W, V), 'rigid')
     if robust < 0 or not np.isfinite(robust):
         raise ValueError(f'robust: expected a finite value >= 0 (0: off), got {robust}')
     if robust_rounds < 0:
@@ -250,6 +250,19 @@ def rigid(W: np.ndarray, V: np.ndarray | None = None, robust: float = 0.0,
     return replace(res, residual_px=float((r * V).sum() / max(V.sum(), 1e-12)),
                    iterations=res.iterations * (robust_rounds + 1),
                    seconds=time.perf_counter() - t0)
+
+
+def _every_frame_seen(W: np.ndarray, V: np.ndarray, method: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """W, V as they are; a ValueError naming the frames where V sees no point (their cameras
+    are undetermined: the factorisations' translations and Procrustes fits divide by nothing
+    there; ``bmm`` and the other methods fill such frames from the rest)."""
+    empty = np.flatnonzero(V.sum(axis=1) == 0)
+    if empty.size:
+        raise ValueError(f'V: frame(s) {empty[:10].tolist()} see no point (all weights 0); '
+                         f'{method} needs every frame to see points: drop those frames or '
+                         f'use another method')
+    return W, V
 
 
 def _entry_residuals(res: NRSfMResult, W: np.ndarray) -> np.ndarray:
@@ -378,7 +391,7 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
     ``init`` warm-starts cameras and shapes (used by the sliding window).
     """
     t0 = time.perf_counter()
-    W, V = check_tracks(W, V)
+    W, V = _every_frame_seen(*check_tracks(W, V), 'lowrank')
     F, P = V.shape
     if rank < 1:
         raise ValueError(f'rank: expected >= 1, got {rank}')
