@@ -697,3 +697,16 @@ def test_stream_bmm_solves_run_fewer_iterations_with_the_same_shapes(monkeypatch
     full = real(W, V)
     for r in (res, chosen):
         assert abs(e3d_normalized(r.S, S) - e3d_normalized(full.S, S)) < 1e-3
+
+
+@pytest.mark.parametrize('method', ['bmm', 'smsr', 'cdf', 'va'])
+def test_tracks_without_spread_are_a_clear_error(method):
+    """Every point at the same place (or nothing visible to fill from): a ValueError naming W,
+    not an IndexError from an empty row space deep in the camera estimate."""
+    with pytest.raises(ValueError, match='W: the centred tracks are all zero'):
+        reconstruct(np.full((24, 60), 5.0), method=method)
+    W, _, _ = low_rank_sequence(K=2)
+    F, P = W.shape[0] // 2, W.shape[1]
+    with pytest.raises(ValueError, match='no entry is visible'):
+        reconstruct(W, np.full((F, P), 1e-3), method='smsr')
+    assert np.isfinite(reconstruct(W, method=method).S).all()

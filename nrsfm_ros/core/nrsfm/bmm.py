@@ -506,6 +506,10 @@ def row_space(Wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     with singular values below 1e-7 of the largest, where the Gram matrix's rounding dominates,
     are dropped (they change W by less than 1e-7 relative)."""
     lam, U = np.linalg.eigh(Wc @ Wc.T)
+    if not lam[-1] > 0:
+        raise ValueError('W: the centred tracks are all zero (after filling hidden entries): '
+                         'the points never spread apart in the image, or no entry is visible '
+                         '(V >= 0.5); nothing to factorise')
     keep = lam > 1e-14 * max(float(lam[-1]), 1e-300)
     U, s = U[:, keep][:, ::-1], np.sqrt(lam[keep])[::-1]
     B = (U.T @ Wc) / s[:, None]
