@@ -32,6 +32,7 @@ def test_recovers_30_degrees(method):
     (np.zeros((10, 2)), r'source: expected shape \(N, 3\)'),
     (np.zeros((2, 3)), 'at least 3 points'),
     (np.full((10, 3), np.nan), 'NaN'),
+    (np.ones((10, 3)), 'all 10 points coincide'),     # CPD divided by its zero variance
 ])
 def test_validation(bad, match):
     with pytest.raises(ValueError, match=match):

@@ -103,6 +103,9 @@ def check_points(name: str, X: np.ndarray, min_points: int = 3) -> np.ndarray:
         raise ValueError(f'{name}: need at least {min_points} points, got {X.shape[0]}')
     if not np.isfinite(X).all():
         raise ValueError(f'{name}: contains NaN or inf; drop invalid points first')
+    if not (X.max(axis=0) > X.min(axis=0)).any():
+        raise ValueError(f'{name}: all {X.shape[0]} points coincide; a cloud needs extent to be '
+                         f'registered')
     return X
 
 
