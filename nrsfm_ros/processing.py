@@ -27,7 +27,7 @@ from .core.registration.rays import (MIN_INLIER_FRACTION, MIN_MATCHES, invert,
                                      mirror_along_rays, ray_cost, ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
-from .core.tracking.reference_flow import reference_pixels
+from .core.tracking.reference_flow import MIN_SIDE, reference_pixels
 from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
@@ -38,7 +38,7 @@ from .params import (Params, ReconstructorParams, RegistrarParams, SceneFlowPara
 Output = tuple[str, str, Any]
 Handler = Callable[[Any], list[Output]]     # one input kind's message -> outputs
 
-MIN_IMAGE_SIDE = 16     # px: smaller camera images are rejected by the tracker
+MIN_IMAGE_SIDE = MIN_SIDE     # px: smaller camera images are rejected by the tracker
 HDMNET_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', '8UC3')
 
 PC2 = 'sensor_msgs/msg/PointCloud2'

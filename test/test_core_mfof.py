@@ -334,6 +334,8 @@ def test_mfof_rejects_bad_input():
         tr.step(np.zeros((10, 10), np.uint8))
     with pytest.raises(ValueError, match='uint8'):
         tr.step(np.zeros((40, 50), np.float32))
+    with pytest.raises(ValueError, match=r'\(8, 60\) smaller than 16 px'):  # was OpenCV's
+        MFOFTracker(MFOFConfig(stride=1, mask='full')).step(np.full((8, 60), 9, np.uint8))
 
 
 def _shifted_texture(frames: int, step: float) -> list[np.ndarray]:

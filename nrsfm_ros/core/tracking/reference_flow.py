@@ -32,6 +32,10 @@ def texture_mask(grey: np.ndarray, block: int = 7, min_std: float = 4.0) -> np.n
     return mask.astype(bool)
 
 
+MIN_SIDE = 16   # px: a smaller image has no level for DIS's patches (OpenCV rejects it deep in
+#   its flow with "Incorrect size of input array")
+
+
 def check_grey(grey: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
     """An (H, W) uint8 frame of the reference's size, or a ValueError naming what is wrong."""
     grey = np.asarray(grey)
@@ -41,6 +45,9 @@ def check_grey(grey: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
     if reference is not None and grey.shape != reference.shape:
         raise ValueError(f'grey: size {grey.shape} differs from the reference '
                          f'{reference.shape}')
+    if min(grey.shape) < MIN_SIDE:
+        raise ValueError(f'grey: image {grey.shape} smaller than {MIN_SIDE} px on a side (too '
+                         f'small for the flow pyramid)')
     return grey
 
 
