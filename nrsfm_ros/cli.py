@@ -1151,6 +1151,8 @@ def cmd_scene_flow(args: argparse.Namespace) -> int:
     np.savez_compressed(args.out, flow=flow, valid=valid, K=K)
     print(f'wrote {args.out}: flow {flow.shape} m ({args.method}), '
           f'{100 * valid.mean():.1f}% valid, {st["seconds_per_frame"]:.3f} s/frame')
+    for i, err in st.get('skipped', []):
+        print(f'frame {i} not processed (flow NaN, not valid): {err}')
     return 0
 
 

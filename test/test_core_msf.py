@@ -175,6 +175,23 @@ def test_depth_units():
         depth_metres(np.zeros((2, 2, 2)))
 
 
+def test_a_frame_without_depth_is_reported_not_fatal():
+    """A covered sensor (no valid depth pixel): the reference is a clear error; a later frame
+    is skipped (flow NaN, not valid), reported, and the next frame is solved as before."""
+    T1 = pose((0.4, 0, 0.5), (0.01, 0, 0.01))
+    (i0, z0), (i1, z1) = render_plane(np.eye(4)), render_plane(T1)
+    blank = np.zeros_like(z0)
+    with pytest.raises(ValueError, match='depth: no valid pixel'):
+        MSF(K).step(i0, blank)
+    cfg = MSFConfig(segments=40)
+    flow, valid, st = msf_sequence([i0, i1, i1], [z0, blank, z1], K, cfg)
+    assert [i for i, _ in st['skipped']] == [1] and 'no valid pixel' in st['skipped'][0][1]
+    assert np.isnan(flow[0]).all() and not valid[0].any()
+    ref, ref_valid, _ = msf_sequence([i0, i1], [z0, z1], K, cfg)
+    assert valid[1].mean() > 0.99
+    np.testing.assert_allclose(flow[1][valid[1]], ref[0][valid[1]], atol=1e-6)
+
+
 def test_cli_scene_flow_folder_round_trip(tmp_path):
     from nrsfm_ros.cli import main
     T = [np.eye(4), pose((0.3, 0, 0.4), (0.01, 0, 0.01)), pose((0.6, 0, 0.8), (0.02, 0, 0.02))]

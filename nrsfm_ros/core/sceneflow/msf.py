@@ -514,6 +514,8 @@ class MSF:
         gray, z = to_gray(image), depth_metres(depth)
         if gray.shape != z.shape:
             raise ValueError(f'image: size {gray.shape} differs from depth {z.shape}')
+        if not np.isfinite(z).any():            # nothing to back-project (a covered sensor)
+            raise ValueError('depth: no valid pixel (every one NaN, inf, 0 or negative)')
         self._frame += 1
         if self._ref is None:
             if self._X0 is not None and gray.shape != self._X0.shape[:2]:
@@ -869,7 +871,9 @@ def msf_sequence(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: 
                  config: MSFConfig | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Flow (F-1, H, W, 3) float32 from the first frame to each later one (first frame's
     camera frame; NaN where unknown), valid (F-1, H, W) and stats (wall and CPU seconds per
-    frame after the reference, re-selected references)."""
+    frame after the reference, re-selected references, and ``skipped``: (frame, error) of every
+    later frame the estimator rejected, e.g. one without valid depth: its flow NaN, not valid).
+    A reference frame it rejects is a ValueError."""
     if len(images) != len(depths) or len(images) < 2:
         raise ValueError(f'images, depths: expected the same number (>= 2) of frames, got '
                          f'{len(images)} and {len(depths)}')
@@ -878,17 +882,26 @@ def msf_sequence(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: 
     t0 = time.perf_counter()
     est.step(images[0], depths[0])
     ref_s = time.perf_counter() - t0
-    for img, d in zip(images[1:], depths[1:]):
+    skipped: list[tuple[int, str]] = []
+    shape = est._X0.shape if est._X0 is not None else (*np.shape(depths[0]), 3)
+    for i, (img, d) in enumerate(zip(images[1:], depths[1:]), 1):
         c0 = time.process_time()
-        fr = est.step(img, d)
+        try:
+            fr = est.step(img, d)
+        except ValueError as err:                # reported, the sequence goes on
+            skipped.append((i, str(err)))
+            flows.append(np.full(shape, np.nan, np.float32))
+            valids.append(np.zeros(shape[:2], bool))
+            continue
         cpu.append(time.process_time() - c0)
         flows.append(fr.flow)
         valids.append(fr.valid)
         secs.append(fr.seconds)
     return (np.stack(flows), np.stack(valids),
-            {'seconds_per_frame': float(np.mean(secs)), 'cpu_seconds_per_frame':
-             float(np.mean(cpu)), 'reference_seconds': ref_s,
-             'reselections': list(est.reselections)})
+            {'seconds_per_frame': float(np.mean(secs)) if secs else float('nan'),
+             'cpu_seconds_per_frame': float(np.mean(cpu)) if cpu else float('nan'),
+             'reference_seconds': ref_s, 'reselections': list(est.reselections),
+             'skipped': skipped})
 
 
 # ------------------------------------------------------------------ baseline
