@@ -3,14 +3,18 @@
 
     .venv/bin/python bench/bench_latency.py [--size 320x240] [--frames 40]
         [--modes window,online,batch] [--downsample 1,2] [--json out.json]
+    .venv/bin/python bench/bench_latency.py --frames 100 --modes dspr,spva
 
 A 30 deg flag render is fed frame by frame through the nodes' processors (no DDS): the tracker,
 then the reconstructor in every mode on the tracker's tracks.  'After start-up' excludes the
 frames before the first window is full; `batch` publishes nothing until its batch is full (60
 frames by default), so its per-frame cost is buffering only and its solve is the batch row of
-bench_pipeline.py.  ``--modes ''``: the tracker alone.  Next to the wall time (median, p95),
-the mean CPU time of the process per frame (``time.process_time``: every thread, not inflated
-by other work on the machine as the wall time is) and the frames per second of both.
+bench_pipeline.py.  `dspr` and `spva` solve their first batch too, then every frame alone
+against the prior built from it (issue 13 target: <= 20 ms a frame at 10k points): their rows
+are the frames after the first batch (``--frames`` above 61).  ``--modes ''``: the tracker
+alone.  Next to the wall time (median, p95), the mean CPU time of the process per frame
+(``time.process_time``: every thread, not inflated by other work on the machine as the wall
+time is) and the frames per second of both.
 ``--downsample 1,2``: a tracker row per value of the tracker's ``downsample`` (the reconstructor
 rows take the tracks of the first).
 """
@@ -34,14 +38,16 @@ from nrsfm_ros.io.synth import SynthConfig, generate  # noqa: E402
 from nrsfm_ros.params import ReconstructorParams, TrackerParams  # noqa: E402
 from nrsfm_ros.processing import ReconstructorProcessor, TrackerProcessor  # noqa: E402
 
-MODES = ('window', 'online', 'batch')
+MODES = ('window', 'online', 'batch', 'dspr', 'spva')
+DEFAULT_MODES = ('window', 'online', 'batch')
+PRIOR_MODES = ('dspr', 'spva')          # per-frame steps after their first batch
 
 
 def main() -> None:
     p = parser(__doc__)
     p.add_argument('--size', default='320x240')
     p.add_argument('--frames', type=int, default=40)
-    p.add_argument('--modes', default=','.join(MODES),
+    p.add_argument('--modes', default=','.join(DEFAULT_MODES),
                    help="reconstructor modes after the tracker, comma-separated ('': none)")
     p.add_argument('--downsample', default='1',
                    help="the tracker's downsample values, comma-separated (a row each)")
@@ -51,6 +57,10 @@ def main() -> None:
     for m in modes:
         if m not in MODES:
             p.error(f'--modes: {m!r} is not one of {", ".join(MODES)}')
+    batch = ReconstructorParams().batch_frames
+    if any(m in PRIOR_MODES for m in modes) and a.frames <= batch + 1:
+        p.error(f'--modes {a.modes}: dspr and spva step frame by frame after their first batch '
+                f'of {batch} frames: use --frames {batch + 30} or more')
     w, h = (int(v) for v in a.size.split('x'))
     fac = RosbagsFactory()
     seq = generate(SynthConfig(surface='flag', width=w, height=h, frames=a.frames,
@@ -81,7 +91,7 @@ def main() -> None:
     start = ReconstructorParams().window + 1
     rows = []
     for name, v in ms.items():
-        first = 1 if name in trackers else start
+        first = 1 if name in trackers else batch + 1 if name in PRIOR_MODES else start
         after, after_cpu = np.array(v[first:]), np.array(cpu[name][first:])
         rows.append({'stage': name if name in trackers else f'reconstructor {name}',
                      'median_ms': float(np.median(after)),

@@ -448,11 +448,11 @@ class DynamicShapePrior:
             # the data, from the weighted moments of q_k = s R2 S_k (t eliminated by centring;
             # non-negative: similar states would otherwise extrapolate to wild depths)
             q = s * (S @ R2.T)                                   # (m, P, 2)
-            qbar = np.einsum('p,kpi->ki', v, q) / Vs             # (m, 2)
-            qv = q * v[None, :, None]
-            G = np.einsum('kpi,lpi->kl', qv, q) - Vs * qbar @ qbar.T
+            qbar = (v @ q) / Vs                                  # (m, 2)
+            qv = (q * v[None, :, None]).reshape(m, -1)           # the sums as BLAS products
+            G = qv @ q.reshape(m, -1).T - Vs * qbar @ qbar.T
             G[np.arange(m), np.arange(m)] += 1e-9 * max(np.trace(G), 1e-300) / m
-            rhs = np.einsum('kpi,pi->k', qv, uv) - Vs * qbar @ ubar
+            rhs = qv @ uv.ravel() - Vs * qbar @ ubar
             L = np.linalg.cholesky(G)
             alpha = nnls(L.T, np.linalg.solve(L, rhs))[0]
             t = ubar - alpha @ qbar
@@ -464,7 +464,7 @@ class DynamicShapePrior:
                 R2, s = fit.R2[cand[j]], float(fit.scale[cand[j]])
                 alpha = np.eye(m)[j]
                 t = fit.t[cand[j]] - s * R2 @ (v @ S[j] / Vs)
-            T = np.einsum('k,kpi->pi', alpha, S)                 # (P, 3)
+            T = (alpha @ S.reshape(m, -1)).reshape(-1, 3)        # (P, 3)
             # camera: Procrustes of the target
             f1 = _fit(T[None], uv, v)
             R2, s = f1.R2[0], float(f1.scale[0])
