@@ -105,6 +105,19 @@ def test_kernels_equal_the_sums_they_replace(window):
     R2 = sR / scale[:, None, None]
     assert K.mean_distance(Wf, V, tn, sR, Z) == pytest.approx(
         _residual(u.reshape(2 * F, P), V, R2, scale, Z), rel=1e-12)
+    # the cameras, translations, error and next eigenbases from the moments
+    R2k, sk, tk, Ek, lk, err = K.camera_update(n, su, suu, sz, suz, szz, tn)
+    R2n, sn = _procrustes_cameras(u.reshape(2 * F, P), V, Z)
+    np.testing.assert_allclose(R2k, R2n, atol=1e-10)
+    np.testing.assert_allclose(sk, sn, rtol=1e-10)
+    pred = (R2n * sn[:, None, None]) @ Z
+    t_ref = ((Wf - pred) * V[:, None]).sum(axis=2) / V.sum(axis=1)[:, None]
+    np.testing.assert_allclose(tk, t_ref, rtol=1e-9, atol=1e-9)
+    assert err == pytest.approx(float((V[:, None] * (Wf - t_ref[:, :, None] - pred) ** 2).sum()),
+                                rel=1e-9)
+    sRn = R2n * sn[:, None, None]
+    np.testing.assert_allclose(Ek @ (lk[:, :, None] * Ek.transpose(0, 2, 1)),
+                               sRn.transpose(0, 2, 1) @ sRn, atol=1e-9)
 
 
 def _frames(ids_per_frame, rng):

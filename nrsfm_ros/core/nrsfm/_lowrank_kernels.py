@@ -126,3 +126,44 @@ def mean_distance(Wf: np.ndarray, V: np.ndarray, tn: np.ndarray, sR: np.ndarray,
             num += v * np.sqrt(r0 * r0 + r1 * r1)
             den += v
     return num / max(den, 1e-12)
+
+
+@njit(cache=True, nogil=True)
+def camera_update(n: np.ndarray, su: np.ndarray, suu: np.ndarray, sz: np.ndarray,
+                  suz: np.ndarray, szz: np.ndarray, tn: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """From ``frame_moments``' sums: per frame the Procrustes camera (the affine fit's nearest
+    scaled orthonormal rows: R2 (F, 2, 3), scale (F,)), the new translation (F, 2), the next
+    shape step's eigenbasis E (F, 3, 3), lam (F, 3) of G = sR^T sR, and the data error
+    sum v |u - sR z - (t_new - t)|^2 over every frame (u = w - t): the per-frame 3 x 3 algebra
+    of an iteration in one call (~0.5 ms of NumPy calls an iteration at 15 frames)."""
+    F = n.shape[0]
+    R2 = np.empty((F, 2, 3))
+    scale = np.empty(F)
+    t_new = np.empty((F, 2))
+    E = np.empty((F, 3, 3))
+    lam = np.empty((F, 3))
+    err = 0.0
+    for f in range(F):
+        C = szz[f].copy()
+        ridge = 1e-12 * (C[0, 0] + C[1, 1] + C[2, 2]) + 1e-300
+        for i in range(3):
+            C[i, i] += ridge
+        M = np.ascontiguousarray(np.linalg.solve(C, np.ascontiguousarray(suz[f].T)).T)
+        U, sig, Vt = np.linalg.svd(M, full_matrices=False)
+        R = U @ Vt
+        s = 0.5 * (sig[0] + sig[1])
+        R2[f] = R
+        scale[f] = s
+        sR = R * s
+        a = su[f] - sR @ sz[f]
+        nf = n[f]
+        tf = (a + nf * tn[f]) / max(nf, 1e-12)
+        t_new[f] = tf
+        d = tf - tn[f]
+        err += suu[f] - 2.0 * np.sum(sR * suz[f]) + np.sum((sR @ szz[f]) * sR) \
+            - 2.0 * (d[0] * a[0] + d[1] * a[1]) + nf * (d[0] * d[0] + d[1] * d[1])
+        w, vec = np.linalg.eigh(sR.T @ sR)
+        lam[f] = w
+        E[f] = vec
+    return R2, scale, t_new, E, lam, err

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..arrays import contiguous64
-from ._lowrank_kernels import frame_moments, mean_distance, shape_step
+from ._lowrank_kernels import camera_update, frame_moments, mean_distance, shape_step
 from .result import NRSfMResult, check_tracks
 
 
@@ -413,28 +413,19 @@ def low_rank(W: np.ndarray, V: np.ndarray | None = None, rank: int = 3, iteratio
     prev = np.inf
     it = 0
     converged = False
+    sR = R2 * scale[:, None, None]
+    lam, E = np.linalg.eigh(np.einsum('fki,fkj->fij', sR, sR))
     for it in range(1, iterations + 1):
         # (a) S_f = argmin sum_p v_fp ||w - t - sR S||^2 + rho ||S - Z||^2   (3x3 per point,
         # through each frame's eigenbasis of G = sR^T sR, rank 2)
-        sR = R2 * scale[:, None, None]
-        lam, E = np.linalg.eigh(np.einsum('fki,fkj->fij', sR, sR))
         S = shape_step(Wf, V, tn, sR, E, lam, Z, rho)
         # (b) rank-K projection of S# (F x 3P)
         Z = _rank_project(S.reshape(F, 3 * P), rank).reshape(F, 3, P)
         # (c) cameras by Procrustes on the centred tracks u = w - t, (d) translations, and the
-        # data error, all from per-frame moments of u and Z
-        n, su, suu, sz, suz, szz = frame_moments(Wf, V, tn, Z)
-        ridge = (1e-12 * np.trace(szz, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(3)
-        M = np.linalg.solve(szz + ridge, suz.transpose(0, 2, 1)).transpose(0, 2, 1)
-        R2, scale = scaled_orthonormal(M)
+        # data error, all from per-frame moments of u and Z; the next step's eigenbases
+        R2, scale, tn_new, E, lam, err = camera_update(*frame_moments(Wf, V, tn, Z), tn)
         sR = R2 * scale[:, None, None]
-        a = su - np.einsum('fki,fi->fk', sR, sz)        # sum v (u - sR z)
-        t_new = (a + n[:, None] * tn) / np.maximum(n, 1e-12)[:, None]
-        d = t_new - tn
-        err = float(np.sum(suu - 2.0 * np.einsum('fki,fki->f', sR, suz)
-                           + np.einsum('fki,fij,fkj->f', sR, szz, sR)
-                           - 2.0 * np.einsum('fk,fk->f', d, a) + n * np.einsum('fk,fk->f', d, d)))
-        tn = t_new
+        tn = tn_new
         rho *= rho_growth
         if abs(prev - err) <= tol * max(err, 1e-12) and it > 5:
             converged = True
