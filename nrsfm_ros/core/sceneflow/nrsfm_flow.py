@@ -242,12 +242,16 @@ def known_poses(clouds: Sequence[Cloud], rotations: np.ndarray, assume_checked: 
     t = np.zeros((F, 3))
     for f in range(1, F):
         (Xa, ia), (Xb, ib) = checked[f - 1], checked[f]
-        _, pa, pb = _shared(ia, ib)
-        if not pa.size:
-            t[f] = t[f - 1]
-            continue
+        if ia.shape == ib.shape and np.array_equal(ia, ib):   # one track set: every point
+            ma, mb = Xa.mean(0), Xb.mean(0)
+        else:
+            _, pa, pb = _shared(ia, ib)
+            if not pa.size:
+                t[f] = t[f - 1]
+                continue
+            ma, mb = Xa[pa].mean(0), Xb[pb].mean(0)
         # R_f^T (m_b - t_f) = R_{f-1}^T (m_a - t_{f-1}): the shared centroid stands still
-        t[f] = Xb[pb].mean(0) - R[f] @ R[f - 1].T @ (Xa[pa].mean(0) - t[f - 1])
+        t[f] = mb - R[f] @ R[f - 1].T @ (ma - t[f - 1])
     return R, t
 
 
@@ -470,6 +474,9 @@ def centred_flow(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, k: int,
         return sf, gain
     Y = np.empty((w, common.size, 3))
     for f, (X, i) in enumerate(clouds):
+        if i.shape == common.shape and np.array_equal(i, common):   # already in that order
+            Y[f] = (X - t[f]) @ R[f]
+            continue
         order = np.argsort(i, kind='stable')
         Y[f] = (X[order[np.searchsorted(i, common, sorter=order)]] - t[f]) @ R[f]
     s = (tau - tau[k - 1]) / max(float(np.ptp(tau)), 1e-300)   # conditioning
