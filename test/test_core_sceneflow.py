@@ -10,9 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.sceneflow import camera_to_object, relative_motion, scene_flow
 from nrsfm_ros.core.sceneflow.nrsfm_flow import (centred_flow, jitter_variance, known_poses,
-                                                 motion_between,
-                                                 object_poses, pair_flow, sequence_flow,
-                                                 shrink_factor, shrunk, weighted_kabsch)
+                                                 motion_between, object_poses, pair_flow,
+                                                 sequence_flow, shrink_factor, shrunk,
+                                                 weighted_kabsch)
 from nrsfm_ros.evaluation import BagOutputs, read_outputs, scene_flow_errors
 from nrsfm_ros.io import pointcloud2 as pc2
 from nrsfm_ros.io.msgtypes import RosbagsFactory, stamp_ns
