@@ -158,6 +158,7 @@ def test_depth_agreement_shortcut_equals_the_intersection():
     assert full[0] > 0.9 * full[1]         # the same depths up to noise agree
     assert _depth_agreement(StreamShape(0, ids[:3], X[:3], np.zeros(2), 0.0), ids, X) == \
         (0.0, 0.0)
+    assert _depth_agreement(sh, ids[:0], X[:0]) == (0.0, 0.0)
 
 
 def test_low_rank_result_type(window):

@@ -975,6 +975,8 @@ def _depth_agreement(sh: StreamShape, ids: np.ndarray, X: np.ndarray) -> tuple[f
     """A published shape's centred depths against a solved frame's X (P, 3) over the tracks
     they share (``ids``, ascending, label X's rows): their dot product and the product of
     their norms (0.0, 0.0 where fewer than 4 are shared)."""
+    if ids.size == 0 or sh.ids.size == 0:
+        return 0.0, 0.0
     if np.array_equal(sh.ids, ids):       # the same tracks (a window's frames, mostly)
         za, zb = sh.X[:, 2], X[:, 2]
     else:                                   # ids sorted: a search, not intersect1d's sorts
