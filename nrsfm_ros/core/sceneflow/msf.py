@@ -883,7 +883,7 @@ def msf_sequence(images: Sequence[np.ndarray], depths: Sequence[np.ndarray], K: 
     est.step(images[0], depths[0])
     ref_s = time.perf_counter() - t0
     skipped: list[tuple[int, str]] = []
-    shape = est._X0.shape if est._X0 is not None else (*np.shape(depths[0]), 3)
+    shape = est._X0.shape                      # (H, W, 3), set by the reference frame
     for i, (img, d) in enumerate(zip(images[1:], depths[1:]), 1):
         c0 = time.process_time()
         try:
