@@ -24,7 +24,8 @@ which then includes the other stages' work done meanwhile (wall times are each c
 Messages cross the process boundaries pickled (rosbags message classes pickle; NumPy arrays
 go as buffers).  The queues are bounded (``QUEUE_SIZE`` events), so a slow stage holds the
 reader back instead of the bag piling up in memory.  A stage process that dies is reported as
-a failure of its stage and the run ends with what was written.
+a failure of its stage; the stages after it are sent the end, so that what got through it is
+processed, flushed and written as after the bag's end, and the run ends there.
 """
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ from .processing import ReconstructorProcessor, SceneFlowProcessor
 
 QUEUE_SIZE = 64          # events in flight between two processes
 POLL_S = 0.5             # how often a blocked process checks that the others are alive
+FORWARD_S = 30.0         # how long the END sent past a dead stage may take to leave
 
 
 @dataclass
@@ -268,6 +270,9 @@ class _ThreadQueue(queue.Queue):
     def close(self) -> None:
         """Nothing to do: no pipe."""
 
+    def join_thread(self) -> None:
+        """Nothing to do: no feeder thread."""
+
 
 class _ThreadContext:
     """The stand-in for a multiprocessing context when the stages are threads: one stop
@@ -286,6 +291,19 @@ class _ThreadContext:
 
 
 WORKERS = ('processes', 'threads')
+
+
+def _send_end(q: Any) -> threading.Thread:
+    """END into a dead stage's output queue, from a thread (the writer goes on draining): the
+    stages after it flush and end as after the bag's end.  The thread ends once END is in the
+    pipe; it never does when the dead process died holding the pipe's lock."""
+    def send() -> None:
+        q.put(END)
+        q.close()
+        q.join_thread()
+    t = threading.Thread(target=send, name='nrsfm-end', daemon=True)
+    t.start()
+    return t
 
 
 def _reap(procs: list[Any]) -> None:
@@ -334,13 +352,24 @@ def process_bag_pipelined(in_path: str | Path, out_path: str | Path,
 
     def write_all(writer: BagWriter) -> None:
         last = queues[-1]
+        ended: dict[int, tuple[threading.Thread, float]] = {}   # dead stage -> its END sent
         while True:
             try:
                 item = last.get(timeout=POLL_S)
             except queue.Empty:
-                if dead():
-                    lost.extend(dead())
-                    return
+                gone = dead()
+                if not gone:
+                    continue
+                lost.extend(s for s in gone if s not in lost)
+                j = max(chain.index(s) for s in gone)
+                if j == len(chain) - 1:
+                    return               # the last stage: nothing after it to wait for
+                if j not in ended:       # the stages after it finish what got through
+                    ended[j] = _send_end(queues[j + 1]), time.perf_counter()
+                    continue
+                t, since = ended[j]
+                if t.is_alive() and time.perf_counter() - since > FORWARD_S:
+                    return               # undeliverable (the dead process held the pipe)
                 continue
             if item == END:
                 return
