@@ -91,6 +91,9 @@ def _parser(verb: str | None = None) -> argparse.ArgumentParser:
                    help=f'deformation amplitude multiplier, 0 = rigid (default {sc.amplitude:g})')
     s.add_argument('--occluder', action='store_true',
                    help='a textured disc sweeps across in front of the surface')
+    s.add_argument('--background', action='store_true',
+                   help='a textured wall behind the surface, still in the world (instead of '
+                   'a plain dark background)')
     s.add_argument('--distance', type=float, default=sc.distance, metavar='M',
                    help=f'camera distance to the surface, metres (default {sc.distance:g})')
     s.add_argument('--periodic', type=int, default=sc.period_frames, metavar='N',
@@ -407,7 +410,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     cfg = SynthConfig(surface=args.surface, width=w, height=h, frames=args.frames, fps=args.fps,
                       seed=args.seed, noise=args.noise, stride=args.stride,
                       camera_motion_deg=args.camera_motion, amplitude=args.amplitude,
-                      occluder=args.occluder, distance=args.distance,
+                      occluder=args.occluder, background=args.background,
+                      distance=args.distance,
                       period_frames=args.periodic)
     flags = {'camera_motion_deg': '--camera-motion', 'amplitude': '--amplitude',
              'period_frames': '--periodic',

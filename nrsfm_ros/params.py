@@ -149,6 +149,13 @@ class TrackerParams(Params):
     mask: str = rule(_MFOF.mask, _TRK['mask'], 'which reference pixels to track')
     min_std: float = rule(_MFOF.min_std, _TRK['min_std'],
                           'texture mask: local intensity std threshold')
+    roi_mask: bool = rule(False, None, 'track only the surface a segmentation gives: the '
+                          'camera/mask image (mono8, nonzero: the surface) of each image\'s '
+                          'stamp, else the latest received; what lies outside it is blacked '
+                          'out before the flow, and a new reference tracks the mask eroded by '
+                          'roi_margin; images before the first mask are skipped and counted')
+    roi_margin: int = rule(2, _at_least(0), 'roi_mask: px (of the input image) taken off the '
+                           "mask's edge for a new reference's tracks")
     rank: int = rule(_MFOF.rank, _TRK['rank'], 'mfof: learned trajectory-basis images (plus 6 '
                      'polynomial ones)')
     window: int = rule(_MFOF.window, _TRK['window'],

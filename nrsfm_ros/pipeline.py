@@ -30,6 +30,7 @@ ROUTES: dict[str, list[tuple[str, str]]] = {
     TOPICS['image']: [('tracker', 'image'), ('scene_flow', 'image'), ('reconstructor', 'image')],
     TOPICS['image_compressed']: [('tracker', 'image_compressed'),
                                  ('reconstructor', 'image_compressed')],   # mode hdmnet
+    TOPICS['mask']: [('tracker', 'mask')],      # tracker roi_mask
     TOPICS['camera_info']: [('reconstructor', 'camera_info'), ('scene_flow', 'camera_info')],
     TOPICS['depth']: [('scene_flow', 'depth')],   # scene_flow method msf (RGB-D)
     TOPICS['tracks']: [('reconstructor', 'tracks')],

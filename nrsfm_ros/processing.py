@@ -47,6 +47,7 @@ TRANSFORM = 'geometry_msgs/msg/TransformStamped'
 
 TOPICS = {
     'image': 'camera/image_raw', 'image_compressed': 'camera/image_raw/compressed',
+    'mask': 'camera/mask',
     'camera_info': 'camera/camera_info', 'depth': 'camera/depth/image_raw',
     'tracks': 'nrsfm/tracks', 'flow': 'nrsfm/flow', 'points': 'nrsfm/points',
     'nrsfm_depth': 'nrsfm/depth', 'object_pose': 'nrsfm/object_pose',
@@ -237,19 +238,24 @@ class Processor:
 
 
 class TrackerProcessor(Processor):
-    """camera image -> nrsfm/tracks (u, v, track_id, visibility, rgb) + nrsfm/flow."""
+    """camera image -> nrsfm/tracks (u, v, track_id, visibility, rgb) + nrsfm/flow; with
+    ``roi_mask``, camera/mask (the surface's segmentation) limits what a new reference
+    tracks."""
 
     name = 'tracker'
     params_cls = TrackerParams
+    MASKS_KEPT = 16             # camera/mask messages kept to match an image's stamp
 
     def handlers(self) -> dict[str, Handler]:
-        return {'image': self.on_image, 'image_compressed': self.on_image_compressed}
+        return {'image': self.on_image, 'image_compressed': self.on_image_compressed,
+                'mask': self.on_mask}
 
     def __init__(self, factory: MsgFactory, params: TrackerParams | None = None) -> None:
         super().__init__(factory, params)
         self.tracker = self._make_tracker()
         self._rgb: np.ndarray | None = None
         self.chain_rejected = 0     # observations the chained check reported not visible
+        self._masks: dict[int, np.ndarray] = {}     # stamp -> bool (H, W), newest last
 
     def status(self) -> dict[str, str]:
         """With ``chain_check_px`` > 0 (mfof): the track observations its chained check
@@ -298,6 +304,48 @@ class TrackerProcessor(Processor):
         except ValueError as err:
             raise MessageError('data', 'untrackable frame', f'skipped: {err}') from err
 
+    def accepts(self, kind: str) -> bool:
+        return kind != 'mask' or self.params.roi_mask
+
+    def on_mask(self, msg: Any) -> list[Output]:
+        """camera/mask (with ``roi_mask``): kept, the newest ``MASKS_KEPT``."""
+        if str(msg.encoding) not in ('mono8', '8UC1'):
+            raise MessageError('camera/mask encoding', str(msg.encoding),
+                               'expected mono8 or 8UC1 (nonzero: the surface)')
+        stamp = stamp_ns(msg.header)
+        self._masks.pop(stamp, None)
+        self._masks[stamp] = img_io.image_to_array(msg) > 0
+        while len(self._masks) > self.MASKS_KEPT:
+            del self._masks[next(iter(self._masks))]
+        return []
+
+    def _frame_mask(self, stamp: int, shape: tuple[int, int]) -> np.ndarray:
+        """The surface's mask (H, W) for the image of ``stamp``: its own, else the latest."""
+        if not self._masks:
+            raise MessageError('camera/mask', 'none received', 'skipped: roi_mask is on and '
+                               'no mask has arrived yet')
+        m = self._masks.get(stamp)
+        if m is None:
+            m = self._masks[next(reversed(self._masks))]
+        if m.shape != shape:
+            raise MessageError('camera/mask height/width', m.shape,
+                               f'differs from the image {shape}: skipped')
+        return m
+
+    def _roi(self, m: np.ndarray, small: tuple[int, int]) -> np.ndarray:
+        """The region a new reference may track: the mask ``m`` eroded by ``roi_margin``, on
+        the tracked image (``small``; after ``downsample`` a block whose pixels all are)."""
+        import cv2
+        r = self.params.roi_margin
+        m8 = m.astype(np.uint8)
+        if r:
+            m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,
+                                                                            2 * r + 1)))
+        n = self.params.downsample
+        if n > 1:
+            m8 = (shrink(m8 * 255, n) == 255).astype(np.uint8)
+        return m8[:small[0], :small[1]].astype(bool)
+
     def on_image(self, msg: Any) -> list[Output]:
         return self._track(img_io.image_to_array(msg), str(msg.encoding), msg.header)
 
@@ -307,12 +355,17 @@ class TrackerProcessor(Processor):
 
     def _track(self, arr: np.ndarray, encoding: str, header: Any) -> list[Output]:
         full = np.ascontiguousarray(img_io.to_mono8(arr, encoding), np.uint8)
+        mask = None
+        if self.params.roi_mask:    # what lies behind the surface is blacked out
+            mask = self._frame_mask(stamp_ns(header), full.shape)
+            full = np.where(mask, full, np.uint8(0))
         n = self.params.downsample
         grey = shrink(full, n)
         self._check_trackable(grey)
         ref = self.tracker.reference
         if ref is not None and grey.shape != ref.shape:
             self.restart()          # a new image size starts a new reference
+        self.tracker.roi = None if mask is None else self._roi(mask, grey.shape)
         tf = self.tracker.step(grey)
         self.chain_rejected += getattr(self.tracker, 'chain_rejected', 0)
         ids = self.tracker.ids

@@ -175,3 +175,20 @@ def test_batch_split_means_the_first_batch_and_the_later_frames_apart(bench):
     assert first == pytest.approx(0.2) and later == pytest.approx(2.0)
     first, later = bench.batch_split(e[:3], 3)
     assert first == pytest.approx(0.2) and np.isnan(later)
+
+
+def test_background_cases_render_the_wall_and_its_mask(bench, tmp_path):
+    """--background: the case's render has the textured wall (no plain-background pixel) and
+    its bag the surface's mask for ``roi_mask``; without it, neither."""
+    import numpy as np
+
+    from nrsfm_ros.io.bag import read_messages
+    from nrsfm_ros.io.sequence_bag import write_sequence_bag
+    for background in (True, False):
+        cfg = bench.case_config('face', (96, 72), 4, 30.0, 1.0, False, background=background)
+        seq = generate(cfg)
+        assert cfg.background is background
+        assert bool(np.isfinite(seq.depth).all()) is background
+        write_sequence_bag(seq, tmp_path / str(background))
+        topics = {m.topic for m in read_messages(tmp_path / str(background))}
+        assert ('camera/mask' in topics) is background

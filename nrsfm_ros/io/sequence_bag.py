@@ -18,6 +18,7 @@ GT_TOPICS = {'points': 'ground_truth/points', 'tracks': 'ground_truth/tracks',
 
 def write_sequence_bag(seq: SynthSequence, path: str | Path, storage: str = 'mcap') -> dict:
     """Topics: camera/image_raw (rgb8), camera/camera_info, camera/depth/image_raw (32FC1, m),
+    camera/mask (mono8, 255 where the surface is seen; renders with a background only),
     registration/reference (frame 0 ground truth, once), ground_truth/points (x, y, z,
     track_id), ground_truth/tracks (u, v, track_id, visibility), ground_truth/camera_pose
     (TransformStamped world -> camera).  Returns the message counts."""
@@ -36,6 +37,12 @@ def write_sequence_bag(seq: SynthSequence, path: str | Path, storage: str = 'mca
             st = int(seq.stamps_ns[f])
             w.write('camera/camera_info', 'sensor_msgs/msg/CameraInfo',
                     img_io.make_camera_info(seq.K, W, H, fac, st, FRAME_ID), st)
+            if seq.config.background:       # a perfect segmenter's mask of the surface
+                seen = np.isfinite(seq.surface_st[f][..., 0]) if seq.surface_st is not None \
+                    else np.isfinite(seq.depth[f])
+                w.write('camera/mask', 'sensor_msgs/msg/Image',
+                        img_io.array_to_image(np.where(seen, 255, 0).astype(np.uint8), 'mono8',
+                                              fac, st, FRAME_ID), st)
             w.write('camera/image_raw', 'sensor_msgs/msg/Image',
                     img_io.array_to_image(seq.images[f], 'rgb8', fac, st, FRAME_ID), st)
             w.write('camera/depth/image_raw', 'sensor_msgs/msg/Image',

@@ -1,9 +1,11 @@
 """Deterministic synthetic sequences with ground truth: a deforming textured surface (waving
 flag, face-like cap, isometrically bending sheet or breathing sphere cap) seen by a moving pinhole
-camera, optionally with an opaque textured occluder sweeping across between camera and surface.
+camera, optionally with an opaque textured occluder sweeping across between camera and surface
+and a textured wall behind it (still in the world: its image moves with the camera only).
 
 Per frame: an rgb8 image rendered by a vectorised triangle rasteriser (z-buffer, bilinear texture,
-Lambertian shading), a depth image (32FC1 metres, NaN off the surface and the occluder),
+Lambertian shading), a depth image (32FC1 metres, NaN off the surface and the occluder, the
+wall's depth where it is seen),
 CameraInfo intrinsics, the camera pose, and for every tracked reference pixel its ground-truth 3D
 point in the camera optical frame (x right, y down, z forward; metres), its 2D track and its
 visibility (0 out of the image, self-occluded or behind the occluder).
@@ -29,6 +31,7 @@ EXTENT = {'flag': 1.0, 'face': 0.5, 'sheet': 1.0,
 MIN_DISTANCE = 1.5                    # m: every surface (and the occluder) in front of the camera
 MAX_AMPLITUDE = 4.0
 OCCLUDER_AREA = 0.3                   # occluder disc area / the surface's area in frame 0
+BACKGROUND_BEHIND = 0.5               # the wall's distance behind the surface / camera distance
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,7 @@ class SynthConfig:
     camera_motion_deg: float = 12.0
     amplitude: float = 1.0      # deformation amplitude multiplier (0: rigid)
     occluder: bool = False      # a textured disc sweeps across in front of the surface
+    background: bool = False    # a textured wall behind the surface, still in the world
     # periodic deformation (0: off): the surface's time runs forwards and back over
     # period_frames / fps seconds, tau(f) = T (1 - cos(2 pi f / period_frames)) / 2, so every
     # state recurs (twice a period, breathing-like) while the camera keeps moving
@@ -74,6 +78,8 @@ class SynthConfig:
             raise ValueError(f'amplitude={self.amplitude}: expected 0..{MAX_AMPLITUDE}')
         if not isinstance(self.occluder, (bool, np.bool_)):
             raise ValueError(f'occluder={self.occluder!r}: expected True or False')
+        if not isinstance(self.background, (bool, np.bool_)):
+            raise ValueError(f'background={self.background!r}: expected True or False')
         _check_period(self.period_frames)
 
 
@@ -122,7 +128,8 @@ class SynthSequence:
              'S_world': self.S_world, 'surface': np.array(c.surface), 'fps': np.array(c.fps),
              'seed': np.array(c.seed), 'distance': np.array(c.distance),
              'noise': np.array(c.noise), 'camera_motion_deg': np.array(c.camera_motion_deg),
-             'amplitude': np.array(c.amplitude), 'occluder_on': np.array(bool(c.occluder))}
+             'amplitude': np.array(c.amplitude), 'occluder_on': np.array(bool(c.occluder)),
+             'background_on': np.array(bool(c.background))}
         if c.period_frames:
             d['period_frames'] = np.array(c.period_frames)
         if self.occluder is not None:
@@ -270,6 +277,28 @@ def _occluder_path(cfg: SynthConfig, area_px: float, rng: np.random.Generator) -
     return np.stack([u, v, np.full(F, r), np.full(F, 0.5 * cfg.distance)], axis=1)
 
 
+def _wall(cfg: SynthConfig, K: np.ndarray, T_cw: np.ndarray, texture: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The background wall seen by the camera T_cw: its image (H, W, 3) float32 and its depth
+    (H, W) m (camera z).  A plane at world z = BACKGROUND_BEHIND x distance, behind the
+    surface and facing the cameras, its texture repeating every ``EXTENT`` metres (about the
+    surface's own texture density), lit evenly."""
+    H, Wd = cfg.height, cfg.width
+    xs, ys = np.meshgrid(np.arange(Wd, dtype=np.float64), np.arange(H, dtype=np.float64))
+    d_c = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    R, t = T_cw[:3, :3], T_cw[:3, 3]
+    centre = -R.T @ t
+    d_w = d_c @ R                                   # R^T d_c per pixel
+    depth = (BACKGROUND_BEHIND * cfg.distance - centre[2]) / d_w[..., 2]
+    P = centre + depth[..., None] * d_w
+    n = texture.shape[0]
+    scale = n / EXTENT[cfg.surface]
+    img = cv2.remap(texture, np.mod(P[..., 0] * scale, n).astype(np.float32),
+                    np.mod(P[..., 1] * scale, n).astype(np.float32), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_WRAP)
+    return 0.8 * img.astype(np.float32), depth
+
+
 def _occluded(uv: np.ndarray, disc: np.ndarray) -> np.ndarray:
     """Which image points uv (N, 2) the occluder disc (u, v, radius, depth) covers."""
     return np.hypot(uv[:, 0] - disc[0], uv[:, 1] - disc[1]) <= disc[2]
@@ -366,6 +395,7 @@ def generate(cfg: SynthConfig) -> SynthSequence:
     occ_rng = np.random.default_rng([cfg.seed, 0x0CC])  # apart from rng: defaults unchanged
     occ_tex = _occluder_texture(occ_rng) if cfg.occluder else None
     occ = None
+    wall_tex = _texture(np.random.default_rng([cfg.seed, 0xBAC])) if cfg.background else None
     pix = np.stack(np.meshgrid(np.arange(Wd), np.arange(H)), axis=-1).reshape(-1, 2) \
         if cfg.occluder else np.empty((0, 2))
     for fi in range(F):
@@ -385,6 +415,10 @@ def generate(cfg: SynthConfig) -> SynthSequence:
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         img = tex.astype(np.float32) * np.nan_to_num(att[..., 2:3])
         img[~covered] = 20.0
+        wall_depth = None
+        if wall_tex is not None:
+            wall, wall_depth = _wall(cfg, K, poses[fi], wall_tex)
+            img[~covered] = wall[~covered]
         if occ_tex is not None:
             if occ is None:
                 occ = _occluder_path(cfg, float(covered.sum()), occ_rng)
@@ -401,7 +435,8 @@ def generate(cfg: SynthConfig) -> SynthSequence:
         if cfg.noise > 0:
             img += rng.normal(0, cfg.noise, img.shape)
         images[fi] = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-        depth[fi] = np.where(covered, zbuf, np.nan).astype(np.float32)
+        depth[fi] = np.where(covered, zbuf, np.nan if wall_depth is None else wall_depth
+                             ).astype(np.float32)
         zbufs.append(zbuf)  # with the occluder's depth: V is 0 for points behind it
         if fi == 0:
             ref_st = att[..., :2]

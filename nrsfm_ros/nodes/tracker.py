@@ -1,4 +1,5 @@
-"""tracker node: camera/image_raw (+ /compressed) -> nrsfm/tracks, nrsfm/flow."""
+"""tracker node: camera/image_raw (+ /compressed) -> nrsfm/tracks, nrsfm/flow; with
+``roi_mask``, camera/mask limits the tracked surface."""
 from __future__ import annotations
 
 import sys
@@ -15,6 +16,7 @@ class TrackerNode(ProcessorNode):
         qos = RELIABLE if self.processor.params.reliable else SENSOR
         self.subscribe('image', 'sensor_msgs/msg/Image', qos)
         self.subscribe('image_compressed', 'sensor_msgs/msg/CompressedImage', qos)
+        self.subscribe('mask', 'sensor_msgs/msg/Image', qos)     # used with roi_mask
 
 
 def main(args: list[str] | None = None) -> int:

@@ -304,6 +304,9 @@ class MFOFTracker:
         self.epoch = -1
         self.keep_history = False   # track_sequence: record (d, w) of the first reference
         self.history: list[tuple[np.ndarray, ...]] = []
+        # bool (H, W), the surface's segmentation: a new reference (the first frame, a
+        # re-selection) tracks only its pixels; None: the whole mask
+        self.roi: np.ndarray | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -352,7 +355,7 @@ class MFOFTracker:
         self._set_learned(np.zeros((0, h * w), np.float32))
         if self.epoch == 0:
             self.history_grid = self._grid
-        mask, lin, xy = reference_pixels(grey, c.mask, c.stride, c.min_std)
+        mask, lin, xy = reference_pixels(grey, c.mask, c.stride, c.min_std, self.roi)
         if carried is None:
             carried = (np.zeros(0, np.uint32), np.zeros((0, 2), np.float32))
         self._carry_ids = np.asarray(carried[0], np.uint32)

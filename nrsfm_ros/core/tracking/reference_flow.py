@@ -51,18 +51,25 @@ def check_grey(grey: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
     return grey
 
 
-def reference_pixels(grey: np.ndarray, mask: str, stride: int, min_std: float
+def reference_pixels(grey: np.ndarray, mask: str, stride: int, min_std: float,
+                     roi: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tracked pixels of a reference frame: the mask (H, W), the linear indices
-    ``y * W + x`` of every ``stride``-th mask pixel, and their (x, y) positions (P, 2)."""
+    ``y * W + x`` of every ``stride``-th mask pixel, and their (x, y) positions (P, 2).
+    ``roi``: a bool (H, W) region the mask is limited to (the surface's segmentation)."""
     h, w = grey.shape
     m = texture_mask(grey, min_std=min_std) if mask == 'texture' else np.ones((h, w), bool)
+    if roi is not None:
+        if roi.shape != (h, w):
+            raise ValueError(f'roi: size {roi.shape} differs from the frame {(h, w)}')
+        m = m & roi
     grid = np.zeros((h, w), bool)
     grid[::stride, ::stride] = True
     ys, xs = np.nonzero(m & grid)
     if xs.size < 4:
         raise ValueError(f'reference frame: only {xs.size} trackable pixels (need >= 4); '
-                         'lower min_std or use mask=full')
+                         + ('the region of interest is too small or untextured'
+                            if roi is not None else 'lower min_std or use mask=full'))
     return m, (ys * w + xs).astype(np.intp), np.stack([xs, ys], axis=1).astype(np.float32)
 
 
@@ -97,6 +104,7 @@ class ReferenceFlowTracker:
         self.ids = np.zeros(0, np.uint32)
         self._xy = np.zeros((0, 2), np.float32)
         self._index = -1
+        self.roi: np.ndarray | None = None   # bool (H, W): a new reference tracks only it
 
     @property
     def reference(self) -> np.ndarray | None:
@@ -109,7 +117,8 @@ class ReferenceFlowTracker:
 
     def _set_reference(self, grey: np.ndarray) -> None:
         h, w = grey.shape
-        _, lin, self._xy = reference_pixels(grey, self.mask_mode, self.stride, self.min_std)
+        _, lin, self._xy = reference_pixels(grey, self.mask_mode, self.stride, self.min_std,
+                                            self.roi)
         self.ids = lin.astype(np.uint32)
         self._ref = grey
         self._flow = np.zeros((h, w, 2), np.float32)
