@@ -4,8 +4,8 @@ the trivial baselines, over a sweep of rendered sequences.
     .venv/bin/python bench/bench_pipeline.py [--surfaces flag,face,sheet,sphere]
         [--motions 12,30,60] [--amplitudes 1,2] [--occluder off,on] [--size 256x192]
         [--frames 60] [--modes window,online,batch] [--gt-methods rigid,lowrank,planar,bmm]
-        [--true-cameras] [--periodic N] [--background] [--live] [--perturb N] [--tracker-split]
-        [--set name=value ...] [--json out.json]
+        [--true-cameras] [--periodic N] [--background] [--noise S] [--live] [--perturb N]
+        [--tracker-split] [--set name=value ...] [--json out.json]
 
 Per case (``nrsfm-ros synth`` renders, seed 0): metric B (per-frame Procrustes + scale, mean over
 frames) of
@@ -154,15 +154,17 @@ def true_camera_bound(seq) -> tuple[float, float]:
 
 def case_config(surface: str, size: tuple[int, int], frames: int, motion: float, amp: float,
                 occluder: bool, periodic: int = 0, distance: float = 4.0,
-                background: bool = False) -> SynthConfig:
+                background: bool = False, noise: float = 0.0) -> SynthConfig:
     """The render of one sweep case (seed 0); ``periodic`` > 0: the deformation's period in
     frames; ``distance``: the camera's distance to the surface (m; the focal length follows so
     that the surface keeps its size in the image: 4 m is a ~19 deg field of view, nearly
     weak perspective, 1.6 m a ~45 deg one, an ordinary camera's); ``background``: a textured
-    wall behind the surface (and its mask on camera/mask for the tracker's ``roi_mask``)."""
+    wall behind the surface (and its mask on camera/mask for the tracker's ``roi_mask``);
+    ``noise``: the images' Gaussian noise (grey levels, sigma)."""
     return SynthConfig(surface=surface, width=size[0], height=size[1], frames=frames, seed=0,
                        camera_motion_deg=motion, amplitude=amp, occluder=occluder,
-                       period_frames=periodic, distance=distance, background=background)
+                       period_frames=periodic, distance=distance, background=background,
+                       noise=noise)
 
 
 def true_depth_bound(seq) -> float:
@@ -337,6 +339,8 @@ def main() -> None:
     p.add_argument('--background', action='store_true',
                    help='render a textured wall behind the surface (the bags also carry the '
                    "surface's mask, camera/mask: compare --tracker-set roi_mask=true)")
+    p.add_argument('--noise', type=float, default=0.0, metavar='S',
+                   help="Gaussian noise on the images, sigma in grey levels (a camera's: 1-5)")
     p.add_argument('--periodic', type=int, default=0,
                    help='deformation period in frames (0: the usual non-repeating motion)')
     p.add_argument('--perturb', type=int, default=0, metavar='N',
@@ -366,7 +370,7 @@ def main() -> None:
             for amp in (float(v) for v in a.amplitudes.split(',')):
                 for occ in a.occluder.split(','):
                     cfg = case_config(surface, (w, h), a.frames, motion, amp, occ == 'on',
-                                      a.periodic, a.distance, a.background)
+                                      a.periodic, a.distance, a.background, a.noise)
                     row = run_case(cfg, modes, gt_methods, a.live, work, a.true_cameras, rec,
                                    a.true_depths, trk, a.perturb, a.tracker_split)
                     rows.append(row)

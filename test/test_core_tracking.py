@@ -92,3 +92,31 @@ def test_tracker_processor_chain_check_reaches_the_tracker_and_diagnostics(seq):
         for proc in (off, on):
             proc.handle('image', array_to_image(im, 'rgb8', fac, int(seq.stamps_ns[f]), 'cam'))
     assert int(on.status()['chain_rejected']) > 0 and off.chain_rejected == 0
+
+
+def test_noise_std_reads_the_noise_of_flat_areas_not_the_texture(seq):
+    from nrsfm_ros.core.tracking.reference_flow import noise_std
+    rng = np.random.default_rng(0)
+    flat = np.full((96, 128), 100.0)
+    for sigma in (2.0, 5.0, 10.0):
+        img = np.clip(np.rint(flat + rng.normal(0, sigma, flat.shape)), 0, 255).astype(np.uint8)
+        assert abs(noise_std(img) - sigma) < 0.15 * sigma
+    assert noise_std(flat.astype(np.uint8)) == 0.0
+    # a textured surface on a flat background: the background's noise, not the texture's
+    grey = cv2.cvtColor(seq.images[0], cv2.COLOR_RGB2GRAY)
+    assert noise_std(grey) == 0.0
+    noisy = np.clip(grey + rng.normal(0, 6.0, grey.shape), 0, 255).astype(np.uint8)
+    assert 5.0 < noise_std(noisy) < 7.5
+
+
+def test_texture_mask_leaves_a_noisy_flat_background_out(seq):
+    """min_std 4 on a camera's noise (sigma 6 here): the flat background's local std is ~6,
+    above min_std, yet it is no texture; the threshold follows the noise."""
+    from nrsfm_ros.core.tracking.reference_flow import texture_mask
+    grey = cv2.cvtColor(seq.images[0], cv2.COLOR_RGB2GRAY)
+    seen = np.isfinite(seq.surface_st[0][..., 0])
+    noisy = np.clip(grey + np.random.default_rng(1).normal(0, 6.0, grey.shape), 0, 255
+                    ).astype(np.uint8)
+    clean, m = texture_mask(grey), texture_mask(noisy)
+    assert m[~seen].mean() < 1.5 * clean[~seen].mean() + 0.01     # background stays out
+    assert m[seen].mean() > 0.9 * clean[seen].mean()               # the surface stays in
