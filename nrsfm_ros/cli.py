@@ -257,6 +257,13 @@ def _track_args(tr: argparse.ArgumentParser) -> None:
                     help=f'mfof: refinement window, frames (default {tp.window})')
     tr.add_argument('--streaming', action='store_true',
                     help='mfof: skip the two-sided batch pass (what the node publishes)')
+    tr.add_argument('--masks', default=None, metavar='MASKS',
+                    help='the surface\'s segmentation, one image per frame (a folder in name '
+                    'order, or a video; bright (> 127): the surface): what lies outside is '
+                    'blacked out and a new reference tracks only inside (the node\'s roi_mask)')
+    tr.add_argument('--roi-margin', type=int, default=None, metavar='PX',
+                    help=f'with --masks: px taken off the mask\'s edge for a new reference '
+                    f'(default {tp.roi_margin})')
 
 
 def _reconstruct_args(rc: argparse.ArgumentParser) -> None:
@@ -907,7 +914,8 @@ def _read_frames(path: Path) -> list[np.ndarray]:
     return frames
 
 
-TRACK_FLAGS = ('method', 'preset', 'stride', 'mask', 'rank', 'window')   # TrackerParams names
+TRACK_FLAGS = ('method', 'preset', 'stride', 'mask', 'rank', 'window',
+               'roi_margin')                                        # TrackerParams names
 
 
 def cmd_track(args: argparse.Namespace) -> int:
@@ -921,8 +929,23 @@ def cmd_track(args: argparse.Namespace) -> int:
             raise CliError(f'frame {i}: size {f.shape} differs from frame 0 {frames[0].shape}')
     given = {k: getattr(args, k) for k in TRACK_FLAGS if getattr(args, k) is not None}
     p = TrackerParams().updated(given)          # the node's checks: an error names the flag
+    rois = None
+    if args.masks is not None:
+        from .core.tracking.reference_flow import black_out, roi_region
+        masks = _read_frames(Path(args.masks))
+        if len(masks) != len(frames):
+            raise CliError(f'--masks {args.masks}: {len(masks)} masks for {len(frames)} frames')
+        for i, m in enumerate(masks):
+            if m.shape != frames[0].shape:
+                raise CliError(f'--masks: mask {i} size {m.shape} differs from the frames '
+                               f'{frames[0].shape}')
+        masks = [m > 127 for m in masks]         # a compressed file's black is not 0
+        frames = [black_out(f, m) for f, m in zip(frames, masks)]
+        rois = [roi_region(m, p.roi_margin) for m in masks]
+    elif args.roi_margin is not None:
+        raise CliError('--roi-margin: only with --masks')
     if p.method == 'mfof':
-        res = track_sequence(frames, p.mfof_config(), smooth=not args.streaming)
+        res = track_sequence(frames, p.mfof_config(), smooth=not args.streaming, rois=rois)
         W, V = res.W.astype(np.float64), res.V
         np.savez_compressed(args.out, W=W, V=V, O=res.O, track_ids=res.ids,
                             reselections=np.array(res.reselections, np.int64))
@@ -934,6 +957,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         tracker = ReferenceFlowTracker(preset=p.preset, stride=p.stride, mask=p.mask,
                                        min_std=p.min_std,
                                        occlusion_threshold=p.occlusion_threshold)
+        tracker.roi = None if rois is None else rois[0]
         out = [tracker.step(f) for f in frames]
         W = np.concatenate([t.uv.T for t in out]).astype(np.float64)
         V = np.stack([t.visibility for t in out])

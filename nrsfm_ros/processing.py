@@ -27,7 +27,7 @@ from .core.registration.rays import (MIN_INLIER_FRACTION, MIN_MATCHES, invert,
                                      mirror_along_rays, ray_cost, ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
-from .core.tracking.reference_flow import MIN_SIDE, reference_pixels
+from .core.tracking.reference_flow import MIN_SIDE, black_out, reference_pixels, roi_region
 from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
@@ -335,16 +335,11 @@ class TrackerProcessor(Processor):
     def _roi(self, m: np.ndarray, small: tuple[int, int]) -> np.ndarray:
         """The region a new reference may track: the mask ``m`` eroded by ``roi_margin``, on
         the tracked image (``small``; after ``downsample`` a block whose pixels all are)."""
-        import cv2
-        r = self.params.roi_margin
-        m8 = m.astype(np.uint8)
-        if r:
-            m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,
-                                                                            2 * r + 1)))
+        region = roi_region(m, self.params.roi_margin)
         n = self.params.downsample
         if n > 1:
-            m8 = (shrink(m8 * 255, n) == 255).astype(np.uint8)
-        return m8[:small[0], :small[1]].astype(bool)
+            region = shrink(region.astype(np.uint8) * 255, n) == 255
+        return region[:small[0], :small[1]]
 
     def on_image(self, msg: Any) -> list[Output]:
         return self._track(img_io.image_to_array(msg), str(msg.encoding), msg.header)
@@ -358,7 +353,7 @@ class TrackerProcessor(Processor):
         mask = None
         if self.params.roi_mask:    # what lies behind the surface is blacked out
             mask = self._frame_mask(stamp_ns(header), full.shape)
-            full = np.where(mask, full, np.uint8(0))
+            full = black_out(full, mask)
         n = self.params.downsample
         grey = shrink(full, n)
         self._check_trackable(grey)

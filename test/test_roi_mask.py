@@ -192,3 +192,35 @@ def test_tracker_node_takes_the_mask_over_rclpy(seq, rclpy_context):
     ids = pc2.read_fields(tracks[0], ('track_id',), np.uint32)[:, 0].astype(np.int64)
     assert ids.size > 100 and _seen(seq, 0).ravel()[ids % (128 * 96)].all()
     assert tracker.processor.stats.malformed == 0
+
+
+def test_track_cli_with_masks_tracks_inside_them(seq, tmp_path, capsys):
+    """``nrsfm-ros track FRAMES --masks MASKS``: the batch verb takes one mask image per frame
+    (as the node takes camera/mask); errors name the flag."""
+    import cv2
+
+    from nrsfm_ros.cli import main
+    (tmp_path / 'f').mkdir()
+    (tmp_path / 'm').mkdir()
+    for f in range(8):
+        cv2.imwrite(str(tmp_path / 'f' / f'{f:03d}.png'), cv2.cvtColor(seq.images[f],
+                                                                    cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(tmp_path / 'm' / f'{f:03d}.png'),
+                    np.where(_seen(seq, f), 255, 0).astype(np.uint8))
+    for method in ('mfof', 'reference'):
+        out = tmp_path / f'{method}.npz'
+        assert main(['track', str(tmp_path / 'f'), '--masks', str(tmp_path / 'm'),
+                     '--method', method, '--out', str(out)]) == 0
+        ids = np.load(out)['track_ids'].astype(np.int64)
+        assert ids.size > 100 and _seen(seq, 0).ravel()[ids % (128 * 96)].all()
+    assert main(['track', str(tmp_path / 'f'), '--out', str(tmp_path / 'x.npz')]) == 0
+    ids = np.load(tmp_path / 'x.npz')['track_ids'].astype(np.int64)
+    assert not _seen(seq, 0).ravel()[ids % (128 * 96)].all()     # the wall too
+    (tmp_path / 'm' / '007.png').unlink()
+    capsys.readouterr()
+    assert main(['track', str(tmp_path / 'f'), '--masks', str(tmp_path / 'm'), '--out',
+                 str(tmp_path / 'y.npz')]) != 0
+    assert '--masks' in (err := capsys.readouterr().err) and '7 masks for 8 frames' in err
+    rc = main(['track', str(tmp_path / 'f'), '--roi-margin', '3', '--out',
+               str(tmp_path / 'z.npz')])
+    assert rc != 0 and '--roi-margin: only with --masks' in capsys.readouterr().err

@@ -701,11 +701,12 @@ class TrackResult:
     seconds: float
 
 
-def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True
-                   ) -> TrackResult:
+def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True,
+                   rois=None) -> TrackResult:
     """Track a sequence of grey uint8 frames: the streaming tracker, then (``smooth``) a
     two-sided pass that re-fits the subspace on a window centred on each frame (past and
-    future frames) and re-fuses every frame's data with it.
+    future frames) and re-fuses every frame's data with it.  ``rois``: per frame the bool
+    (H, W) region a new reference selected there may track (``MFOFTracker.roi``), or None.
 
     Tracks are returned for the first reference's ids (P fixed): after a re-selection those
     carried across continue; the others keep their last position and are marked invisible."""
@@ -715,7 +716,12 @@ def track_sequence(frames, config: MFOFConfig | None = None, smooth: bool = True
     tracker = MFOFTracker(cfg)
     tracker.keep_history = smooth
     frames = list(frames)
-    out = [tracker.step(np.asarray(f)) for f in frames]
+    if rois is not None and len(rois) != len(frames):
+        raise ValueError(f'rois: {len(rois)} regions for {len(frames)} frames')
+    out = []
+    for k, f in enumerate(frames):
+        tracker.roi = None if rois is None else rois[k]
+        out.append(tracker.step(np.asarray(f)))
     ids = out[0].ids
     F, P = len(out), ids.size
     W = np.zeros((2 * F, P), np.float32)

@@ -49,6 +49,22 @@ def texture_mask(grey: np.ndarray, block: int = 7, min_std: float = 4.0) -> np.n
     return mask.astype(bool)
 
 
+def roi_region(mask: np.ndarray, margin: int) -> np.ndarray:
+    """A segmentation ``mask`` (H, W; nonzero: the surface) eroded by ``margin`` px (a disc):
+    the region a new reference tracks (``tracker.roi``), away from the mask's edge."""
+    m8 = (np.asarray(mask) != 0).astype(np.uint8)
+    if margin > 0:
+        m8 = cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                                     (2 * margin + 1, 2 * margin + 1)))
+    return m8.astype(bool)
+
+
+def black_out(grey: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``grey`` with what lies outside the ``mask`` (nonzero: the surface) set to 0: the flow
+    and the texture mask then see a plain background, not what lies behind the surface."""
+    return np.where(np.asarray(mask) != 0, grey, np.uint8(0)).astype(np.uint8)
+
+
 MIN_SIDE = 16   # px: a smaller image has no level for DIS's patches (OpenCV rejects it deep in
 #   its flow with "Incorrect size of input array")
 
