@@ -251,7 +251,13 @@ class ReconstructorParams(Params):
                        'planar, else bmm; window and online modes run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode; dspr: the '
-                             'batch the prior is built from)')
+                             'batch the prior is built from) where batch_seconds is 0 or the '
+                             'frame rate unknown')
+    batch_seconds: float = rule(6.0, _at_least(0), 'batch modes: a batch spans this much of '
+                                'the stream, its frames from the frame rate of the first '
+                                'tracks\' stamps (60 at 10 frames/s, 180 at 30; 3..300), and '
+                                'batch_context keeps its share of batch_frames; 0: '
+                                'batch_frames as given')
     batch_context: int = rule(30, _at_least(0), 'batch mode: each batch after the first is '
                               'solved with up to this many frames before it that share its '
                               'tracks (published already: context only, for the camera motion '

@@ -487,6 +487,7 @@ class ReconstructorProcessor(Processor):
         if p.mode == 'hdmnet':
             self._load_hdmnet()
         self.stream = make_stream(p if p.mode != 'hdmnet' else replace(p, mode='batch'))
+        self._rate_stamps: list[int] | None = [] if p.batch_seconds > 0 else None
         self._apply_intrinsics()
         self._pending: dict[int, tuple[int, str, np.ndarray]] = {}   # stamp, frame, uv
         self._vis: dict[int, tuple[np.ndarray, np.ndarray]] = {}      # track ids, visibility
@@ -615,10 +616,36 @@ class ReconstructorProcessor(Processor):
         vis = np.where(finite, np.clip(np.nan_to_num(cols[:, 2]), 0.0, 1.0), 0.0)
         uv = np.where(finite[:, None], cols[:, :2], np.nanmean(cols[finite, :2], axis=0))
         index = self.stream.frames_seen
+        self._measure_rate(stamp_ns(msg.header))
         self._pending[index] = (stamp_ns(msg.header), str(msg.header.frame_id), uv)
         self._vis[index] = (ids.copy(), vis)
         self._keep_colours(ids.astype(np.int64), rgb)
         return self._emit(self.stream.push(ids, uv, vis))
+
+    RATE_FRAMES = 5             # batch_seconds: the frame rate from this many first stamps
+    MAX_BATCH_FRAMES = 300
+
+    def _measure_rate(self, stamp: int) -> None:
+        """``batch_seconds``: once ``RATE_FRAMES`` stamps are in, the batches resized to that
+        span of the stream (``StreamNRSfM.set_batch``); stamps not increasing leave
+        ``batch_frames`` as it is."""
+        if self._rate_stamps is None:
+            return
+        self._rate_stamps.append(stamp)
+        if len(self._rate_stamps) < self.RATE_FRAMES:
+            return
+        dt = float(np.median(np.diff(self._rate_stamps))) * 1e-9
+        self._rate_stamps = None
+        p = self.params
+        if not dt > 0:
+            return
+        n = int(np.clip(round(p.batch_seconds / dt), 3, self.MAX_BATCH_FRAMES))
+        if p.mode == 'spva':
+            n = max(n, p.spva_prior_frames)
+        try:
+            self.stream.set_batch(n, int(round(p.batch_context * n / p.batch_frames)))
+        except ValueError:
+            pass            # a batch shorter than RATE_FRAMES was solved already: kept
 
     def _emit(self, shapes: list[StreamShape]) -> list[Output]:
         """One nrsfm/points cloud and one nrsfm/depth image per shape."""

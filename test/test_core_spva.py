@@ -326,7 +326,7 @@ def test_process_bag_with_the_reconstructor_in_spva_mode(tmp_path):
     params.mkdir()
     (params / 'reconstructor.yaml').write_text(
         'reconstructor:\n  ros__parameters:\n    mode: spva\n    batch_frames: 10\n'
-        '    spva_prior_frames: 4\n')
+        '    batch_seconds: 0.0\n    spva_prior_frames: 4\n')     # 10 frames, not 6 s
     assert main(['process', str(tmp_path / 'in'), '--out', str(tmp_path / 'out'), '--pipeline',
                  'tracker,reconstructor', '--params', str(params), '--report',
                  str(tmp_path / 'r.json'), '--no-progress']) == 0

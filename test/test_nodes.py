@@ -445,7 +445,8 @@ def test_reconstructor_node_loses_no_tracks_while_it_solves(rclpy_context):
         _stop_spun(ex, spinner, node, probe)
     assert node.processor.stats.dropped == 0
     assert [n for k, n in handled if k == 'tracks'] == list(range(151))
-    assert node.queue_depth('tracks') == 240 and 'camera_info' in node.queue.latest
+    # 4 batches of batch_seconds (6 s) at a 30 frames/s camera
+    assert node.queue_depth('tracks') == 720 and 'camera_info' in node.queue.latest
 
 
 def test_camera_input_latency_stays_bounded_under_overload(rclpy_context):

@@ -32,8 +32,10 @@ class ReconstructorNode(ProcessorNode):
         if kind != 'tracks':
             return super().queue_depth(kind)
         p = self.processor.params
+        # batch_seconds at a 30 frames/s camera
+        frames = max(p.batch_frames, round(30 * p.batch_seconds))
         return tracks_queue_depth(p.queue_size, self._reliable.get(kind, True), p.mode,
-                                  p.batch_frames)
+                                  frames)
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('reconstructor', ReconstructorProcessor,

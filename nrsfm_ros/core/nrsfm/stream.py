@@ -375,6 +375,27 @@ class StreamNRSfM:
         self._intrinsics = check_intrinsics(focal, principal)
 
     # ------------------------------------------------------------------ public
+    def set_batch(self, frames: int, context: int) -> None:
+        """Resize the batches (``batch_frames``, ``batch_context``) before the first batch is
+        solved: the reconstructor's batch measured in time (``batch_seconds``) once the
+        stream's frame rate is known; a ValueError once a shape was published."""
+        if self._count != len(self._pending):
+            raise ValueError('set_batch: a batch was solved already')
+        if isinstance(frames, (bool, np.bool_)) or int(frames) != frames or frames < 3:
+            raise ValueError(f'batch_frames: expected an integer >= 3, got {frames}')
+        if isinstance(context, (bool, np.bool_)) or int(context) != context or context < 0:
+            raise ValueError(f'batch_context: expected an integer >= 0, got {context}')
+        if self.mode == 'spva' and self.spva['prior_frames'] > frames:
+            raise ValueError(f'batch_frames={frames}: below spva_prior_frames '
+                             f'({self.spva["prior_frames"]})')
+        self.batch_frames, self.batch_context = int(frames), int(context)
+        if self.mode in ('batch', 'dspr', 'spva'):
+            extra = self.batch_context if self.mode == 'batch' else 0
+            size = 2 * self.batch_frames + extra if self.mode == 'batch' and \
+                self._expected is not None else self.batch_frames + extra
+            self._frames = deque(self._frames, maxlen=size)
+            self._published = deque(self._published, maxlen=self.batch_frames)
+
     def expect(self, frames: int) -> None:
         """The stream's length in frames, where it is known (``process`` on a bag).  In
         ``batch`` mode a batch that fills with at most ``batch_frames // 2`` frames left waits
