@@ -78,3 +78,25 @@ def test_set_batch_resizes_before_the_first_solve_only():
     spva = StreamNRSfM(mode='spva', batch_frames=20, spva_prior_frames=10)
     with pytest.raises(ValueError, match='below spva_prior_frames'):
         spva.set_batch(8, 0)
+
+
+def test_the_streams_bmm_threshold_follows_the_batchs_frames():
+    """bmm's nuclear-norm weight in the stream: its own up to 60 frames, x sqrt(F / 60) beyond
+    (a 30 frames/s camera's 180-frame batch: x sqrt(3)), and it reaches the stream's solves."""
+    from scipy.spatial.transform import Rotation
+
+    from nrsfm_ros.core.nrsfm import bmm, stream
+    assert stream.bmm_lam(20) == stream.bmm_lam(60) == stream.BMM_LAM == 4.0
+    assert stream.bmm_lam(240) == pytest.approx(8.0)
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-1, 1, (2, 60))
+    X, B, F = np.stack([u, v, 0.8 * (u ** 2 + v ** 2)]), rng.normal(size=(3, 60)), 120
+    Rs = Rotation.from_euler('yx', np.stack([0.5 * np.sin(np.arange(F) / 15),
+                                             0.2 * np.cos(np.arange(F) / 11)], 1)).as_matrix()
+    W = 100 * np.concatenate([R[:2] @ (X + 0.1 * np.sin(f / 7) * B) for f, R in enumerate(Rs)])
+    W += 0.3 * rng.normal(size=W.shape)
+    V = np.ones((F, 60))
+    got = stream._solve_all(W, V, 'bmm', 2).S
+    scaled = bmm(W, V, lam=4.0 * np.sqrt(2.0), iterations=stream.BMM_ITERATIONS).S
+    plain = bmm(W, V, lam=4.0, iterations=stream.BMM_ITERATIONS).S
+    assert np.abs(got - scaled).max() < 1e-3 * np.abs(got).max() < np.abs(got - plain).max()

@@ -75,6 +75,12 @@ BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above
 #   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
 #   e3D 0.08-0.18 there against rigid's 0.025-0.067); the cap at 12 deg 0.24 (bmm 0.20, rigid
 #   0.27); the mocap sets of ../shared/data/nrsfm 0.00-0.26 (face 0.26, the rest <= 0.12).
+BMM_LAM = 4.0            # bmm's lam (its own default) for batches up to BMM_LAM_FRAMES frames
+BMM_LAM_FRAMES = 60       # longer batches scale it by sqrt(frames / BMM_LAM_FRAMES): the
+#   tracker's errors are smooth in time, low rank as the deformation is, and their singular
+#   values grow with sqrt(frames) past a threshold that does not; a 30 frames/s camera's
+#   180-frame batch otherwise took bmm on the face (0.041) where rigid gets 0.031 (BENCHMARKS
+#   issue 12, "The camera's frame rate")
 BMM_ITERATIONS = 40      # ADMM iterations of the stream's bmm solves (bmm's own default: 100):
 #   the same e3D to 4 digits on 8 face / cap sweep cases (30 / 60 deg, with and without the
 #   occluder; ground-truth stream and through the tracker), `process` on the 320x240 face
@@ -179,6 +185,12 @@ def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int,
                                                  planar_ratio), W, V, BATCH_MAX_TRACKS)
 
 
+def bmm_lam(frames: int) -> float:
+    """``lam`` of the stream's ``bmm`` solves for a batch of ``frames``: bmm's own (4.0) up to
+    ``BMM_LAM_FRAMES``, then x sqrt(frames / BMM_LAM_FRAMES)."""
+    return BMM_LAM * float(np.sqrt(max(frames, BMM_LAM_FRAMES) / BMM_LAM_FRAMES))
+
+
 def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
     """The stream's ``bmm`` of tracks near those ``start`` explains (the perspective step's
     corrected measurements), started from it (``bmm.bmm_warm``), on the same spread subset as
@@ -187,8 +199,8 @@ def _warm_bmm(W: np.ndarray, V: np.ndarray, start: NRSfMResult) -> NRSfMResult:
     from .extend import spread_subset, subset_solve
     idx = spread_subset(V.shape[1], BATCH_MAX_TRACKS)      # the subset subset_solve takes
     sub_start = start if idx.size == V.shape[1] else replace(start, S=start.S[:, idx])
-    return subset_solve(lambda W, V: bmm_warm(W, V, sub_start, iterations=BMM_ITERATIONS),
-                        W, V, BATCH_MAX_TRACKS)
+    return subset_solve(lambda W, V: bmm_warm(W, V, sub_start, lam=bmm_lam(V.shape[0]),
+                                              iterations=BMM_ITERATIONS), W, V, BATCH_MAX_TRACKS)
 
 
 def _warm_bmm_staged(W: np.ndarray, V: np.ndarray, start: NRSfMResult
@@ -196,7 +208,7 @@ def _warm_bmm_staged(W: np.ndarray, V: np.ndarray, start: NRSfMResult
     """``_warm_bmm`` in two stages (``bmm.bmm_warm_staged``), for tracks within
     ``BATCH_MAX_TRACKS`` (no subset)."""
     from .bmm import bmm_warm_staged
-    return bmm_warm_staged(W, V, start, iterations=BMM_ITERATIONS)
+    return bmm_warm_staged(W, V, start, lam=bmm_lam(V.shape[0]), iterations=BMM_ITERATIONS)
 
 
 def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
@@ -207,7 +219,7 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
         return auto_solve(W, V, perspective, planar_ratio)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'bmm':
-        kw = {'iterations': BMM_ITERATIONS}
+        kw = {'iterations': BMM_ITERATIONS, 'lam': bmm_lam(V.shape[0])}
     if method == 'planar':          # chosen (by the user or by auto's first decision): the
         kw = {'rigid_check': False}  # stream never reads converged, skip its rigid solve
     return reconstruct(W, V, method=method, **kw)
@@ -232,6 +244,7 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, planar,
                          rigid_residual, safe_rigid)
     rig = safe_rigid(W, V)
+    lam = bmm_lam(V.shape[0])
     # with the camera the perspective test below also judges planar: the flatness test may
     # then allow the relief a weak-perspective fit reads into a close camera's perspective
     checked = perspective is not None and rig is not None
@@ -244,13 +257,13 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     if res.converged:
         return res
     if rig is None:
-        return bmm(W, V, iterations=BMM_ITERATIONS)
+        return bmm(W, V, lam=lam, iterations=BMM_ITERATIONS)
     # bmm against rigid is decided on a spread subset of the tracks (the residual ratio is a
     # mean over tracks): the full bmm solve is only paid where bmm is taken
     idx = spread_subset(V.shape[1], DECISION_TRACKS)
     sub = idx.size < V.shape[1]
-    trial = bmm(W[:, idx], V[:, idx], iterations=BMM_ITERATIONS) if sub else \
-        bmm(W, V, iterations=BMM_ITERATIONS)
+    trial = bmm(W[:, idx], V[:, idx], lam=lam, iterations=BMM_ITERATIONS) if sub else \
+        bmm(W, V, lam=lam, iterations=BMM_ITERATIONS)
     base = rigid_residual(safe_rigid(W[:, idx], V[:, idx]) if sub else rig)
     if trial.residual_px > BMM_RIGID_RATIO * base:
         return rig
@@ -259,7 +272,7 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     # the full solve starts from the subset's, extended to every track: its cameras stand in
     # for a metric projection of all tracks (the same e3D within +-6% on the sweep's bmm
     # cases, BENCHMARKS issue 17, session 16)
-    return bmm_warm(W, V, extend(trial, idx, W, V), iterations=BMM_ITERATIONS)
+    return bmm_warm(W, V, extend(trial, idx, W, V), lam=lam, iterations=BMM_ITERATIONS)
 
 
 UNFITTED_CLEAR = 0.05   # _frame_reflections: the unfitted image's evidence (mean log error
