@@ -47,6 +47,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -275,6 +276,14 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     return bmm_warm(W, V, extend(trial, idx, W, V), lam=lam, iterations=BMM_ITERATIONS)
 
 
+def _integer(name: str, value: Any, lo: int) -> int:
+    """``value`` as an int, or a ValueError naming ``name`` unless it is an integer >= ``lo``
+    (a bool is not)."""
+    if isinstance(value, (bool, np.bool_)) or int(value) != value or value < lo:
+        raise ValueError(f'{name}: expected an integer >= {lo}, got {value}')
+    return int(value)
+
+
 UNFITTED_CLEAR = 0.05   # _frame_reflections: the unfitted image's evidence (mean log error
 #   ratio per frame) above which the pinhole fits are not asked
 
@@ -310,10 +319,7 @@ class StreamNRSfM:
                             ('batch_frames', batch_frames, 3)):
             if v < lo:
                 raise ValueError(f'{name}: expected >= {lo}, got {v}')
-        if isinstance(batch_context, (bool, np.bool_)) or int(batch_context) != batch_context \
-                or batch_context < 0:
-            raise ValueError(f'batch_context: expected an integer >= 0, got {batch_context}')
-        self.batch_context = int(batch_context)
+        self.batch_context = _integer('batch_context', batch_context, 0)
         self.mode, self.window, self.rank, self.iterations = mode, window, rank, iterations
         self.method, self.batch_frames = method, batch_frames
         for name, v in (('dspr_recurrence_px', dspr_recurrence_px),
@@ -335,9 +341,7 @@ class StreamNRSfM:
                 raise ValueError(f'{name}: expected a finite value >= 0, got {v}')
         if not (np.isfinite(spva_refresh) and 0 <= spva_refresh <= 1):
             raise ValueError(f'spva_refresh: expected 0..1, got {spva_refresh}')
-        if isinstance(spva_iterations, (bool, np.bool_)) or int(spva_iterations) != \
-                spva_iterations or spva_iterations < 1:
-            raise ValueError(f'spva_iterations: expected an integer >= 1, got {spva_iterations}')
+        _integer('spva_iterations', spva_iterations, 1)
         self.spva = dict(prior_frames=int(spva_prior_frames), weighting=spva_weighting,
                          prior_weight=float(spva_prior_weight),
                          smoothness=float(spva_smoothness), refresh=float(spva_refresh),
@@ -394,10 +398,8 @@ class StreamNRSfM:
         stream's frame rate is known; a ValueError once a shape was published."""
         if self._count != len(self._pending):
             raise ValueError('set_batch: a batch was solved already')
-        if isinstance(frames, (bool, np.bool_)) or int(frames) != frames or frames < 3:
-            raise ValueError(f'batch_frames: expected an integer >= 3, got {frames}')
-        if isinstance(context, (bool, np.bool_)) or int(context) != context or context < 0:
-            raise ValueError(f'batch_context: expected an integer >= 0, got {context}')
+        frames = _integer('batch_frames', frames, 3)
+        context = _integer('batch_context', context, 0)
         if self.mode == 'spva' and self.spva['prior_frames'] > frames:
             raise ValueError(f'batch_frames={frames}: below spva_prior_frames '
                              f'({self.spva["prior_frames"]})')
@@ -416,9 +418,7 @@ class StreamNRSfM:
         alone or with a few frames of context (150-frame renders through the tracker,
         BENCHMARKS issue 12, session 36), unless the last batch was ``planar`` (then
         the rest is the flush's, as live: two of the planar renders lost up to 1.5x)."""
-        if isinstance(frames, (bool, np.bool_)) or int(frames) != frames or frames < 0:
-            raise ValueError(f'frames: expected an integer >= 0, got {frames}')
-        self._expected = int(frames)
+        self._expected = _integer('frames', frames, 0)
         if self.mode == 'batch':        # a last batch of up to 1.5 batch_frames, its context
             self._frames = deque(self._frames, maxlen=2 * self.batch_frames + self.batch_context)
 
