@@ -262,6 +262,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
     sc = score(gt_clouds, seq)
     st = sc.summary()
     row['stream_gt'], row['stream_gt_frames'] = st['e3d'], st['frames_scored']
+    row['stream_gt_points'] = st['points_matched_mean']
     row['stream_gt_first'], row['stream_gt_later'] = batch_split(sc.e3d, rec.batch_frames)
     row['stream_gt_inverted'] = depth_reflected_frames(gt_clouds, seq)
     case = work / f'{cfg.surface}_{cfg.camera_motion_deg:g}_{cfg.amplitude:g}'
@@ -276,6 +277,7 @@ def run_case(cfg: SynthConfig, modes: list[str], gt_methods: list[str], live: bo
         sc = score(clouds, seq)
         s = sc.summary()
         row[mode], row[f'{mode}_static'] = s['e3d'], s['static']
+        row[f'{mode}_points'] = s['points_matched_mean']     # surface points published
         row[f'{mode}_first'], row[f'{mode}_later'] = batch_split(sc.e3d, rec.batch_frames)
         row[f'{mode}_static_first'], row[f'{mode}_static_later'] = \
             batch_split(sc.static, rec.batch_frames)
@@ -405,6 +407,12 @@ def main() -> None:
           [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
             'yes' if r['occluder'] else 'no', f"{r['stream_gt_inverted']}/{r['frames_in']}"]
            + [f"{r[f'{m}_inverted']}/{r['frames_in']}" for m in modes] for r in rows])
+    print()
+    table(['surface', 'cam deg', 'amp', 'occl', 'surface points a frame: stream(GT)']
+          + [f'{m}' for m in modes],
+          [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+            'yes' if r['occluder'] else 'no', f"{r['stream_gt_points']:.0f}"]
+           + [f"{r[f'{m}_points']:.0f}" for m in modes] for r in rows])
     occ_rows = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m, f4(r[m]),
                  f4(r[f'{m}_occluded']), f4(r[f'{m}_visible']),
                  f"{r[f'{m}_occluded'] / r[f'{m}_visible']:.2f}"]

@@ -263,6 +263,12 @@ class ReconstructorParams(Params):
                               'tracks (published already: context only, for the camera motion '
                               'before the batch), and the last partial batch with the frames '
                               'before it up to batch_frames; 0: every batch alone')
+    min_seen: float = rule(0.7, _unit_or_zero, 'batch and dspr: a track enters a batch solve, '
+                           'and its clouds, where the tracker saw it (visibility >= 0.5) in at '
+                           'least this share of the batch frames that report it: one lost most '
+                           'of the time (a textured background sliding behind the surface, '
+                           'the rim) has depths the batch does not observe; the status '
+                           'tracks_left_out counts them (0: every track seen in 2 frames)')
     rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     projection: str = rule('perspective', _one_of('perspective', 'weak'),

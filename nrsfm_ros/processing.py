@@ -453,6 +453,7 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
     kw = dict(mode=params.mode, window=params.window, rank=params.rank,
               iterations=params.iterations, method=params.method,
               batch_frames=params.batch_frames, batch_context=params.batch_context,
+              min_seen=params.min_seen,
               projection=params.projection,
               dspr_recurrence_px=params.dspr_recurrence_px, dspr_distinct=params.dspr_distinct,
               dspr_prior_weight=params.dspr_prior_weight,
@@ -506,14 +507,17 @@ class ReconstructorProcessor(Processor):
         """Batch solves won by the perspective model, planar ones of them refined under the
         pinhole camera (``pinhole_refinements``), first batches whose depth sign a rigid fit
         to the pinhole image decided (``pinhole_signs``), batch frames published with their
-        depths reflected to agree with the perspective image (``reflected_frames``), the last
-        batch solve's method (what ``auto`` chose); dspr: compression (frames / stored states) and tracks new since the
-        prior; spva: the frames (of the first batch) its shape prior was built from."""
+        depths reflected to agree with the perspective image (``reflected_frames``), the
+        tracks the last solve left out as seen in too few of its frames (``min_seen``:
+        ``tracks_left_out``), the last batch solve's method (what ``auto`` chose); dspr:
+        compression (frames / stored states) and tracks new since the prior; spva: the frames
+        (of the first batch) its shape prior was built from."""
         s = self.stream
         out = {'perspective_solves': str(s.perspective_solves),
                'pinhole_refinements': str(s.pinhole_refinements),
                'pinhole_signs': str(s.pinhole_signs),
-               'reflected_frames': str(s.reflected_frames)}
+               'reflected_frames': str(s.reflected_frames),
+               'tracks_left_out': str(s.tracks_left_out)}
         if s.last_method:
             out['last_method'] = s.last_method
         if self.params.mode == 'dspr':

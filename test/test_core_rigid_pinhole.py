@@ -114,15 +114,15 @@ def test_stream_publishes_the_breathing_cap_convex_where_the_unfitted_image_did_
     assert (agreement() < 0).all()          # the rule it replaces, for the record
 
 
-def test_stream_asks_the_fits_only_where_the_unfitted_image_is_unclear(monkeypatch):
-    """A rigid cloud at 1.5 m: the unfitted perspective image already tells the reflections
-    apart (mean log error ratio far above ``UNFITTED_CLEAR``), so the stream does not pay for
-    the fits; at 400 m with noise it cannot, and the fits are asked (once, first batch)."""
+def test_stream_asks_the_fits_once_for_its_first_batch(monkeypatch):
+    """A rigid cloud at 1.5 m, where the unfitted perspective image already tells the
+    reflections apart, and at 400 m with noise, where it cannot: either way the fits are
+    asked once, for the first batch (an unfitted verdict can be clear and wrong)."""
     from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
     calls = []
     monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.batch_sign',
                         lambda *a, **k: calls.append(1) or (0.0, 0.0))
-    for distance, asked in ((1.5, 0), (400.0, 1)):
+    for distance in (1.5, 400.0):
         W, V, *_ = scene(distance)
         W = W + np.random.default_rng(3).normal(0.0, 0.3, W.shape)
         calls.clear()
@@ -131,4 +131,4 @@ def test_stream_asks_the_fits_only_where_the_unfitted_image_is_unclear(monkeypat
         for f in range(V.shape[0]):
             st.push(np.arange(V.shape[1]), W[2 * f:2 * f + 2].T, V[f])
         st.flush()
-        assert len(calls) == asked, distance
+        assert len(calls) == 1, distance

@@ -12,7 +12,7 @@ from nrsfm_ros.io.errors import MessageError
 from nrsfm_ros.io.image import array_to_image
 from nrsfm_ros.io.msgtypes import RosbagsFactory
 from nrsfm_ros.io.synth import SynthConfig, generate
-from nrsfm_ros.params import TrackerParams
+from nrsfm_ros.params import ReconstructorParams, TrackerParams
 from nrsfm_ros.processing import TrackerProcessor
 
 FAC = RosbagsFactory()
@@ -121,9 +121,10 @@ def test_processor_names_a_bad_mask(seq):
 
 
 def test_pipeline_on_a_background_render_beats_its_baselines_with_the_mask(seq, tmp_path):
-    """Through tracker -> reconstructor on a sheet before a textured wall: without the mask
-    the wall's tracks break the reconstruction (above the static oracle); with it, below
-    the static and flat baselines scored on the same frames, and under half the error."""
+    """Through tracker -> reconstructor on a sheet before a textured wall, every track seen
+    twice in the batch (``min_seen`` 0, so the mask alone is measured): without the mask the
+    wall's tracks break the reconstruction (above the static oracle); with it, below the
+    static and flat baselines scored on the same frames, and under half the error."""
     from nrsfm_ros.evaluation import read_clouds, score
     from nrsfm_ros.io.sequence_bag import write_sequence_bag
     from nrsfm_ros.pipeline import process_bag
@@ -132,7 +133,9 @@ def test_pipeline_on_a_background_render_beats_its_baselines_with_the_mask(seq, 
     for roi in (False, True):
         out = tmp_path / f'out{int(roi)}'
         rep = process_bag(tmp_path / 'bag', out, stages=('tracker', 'reconstructor'),
-                          progress=False, params={'tracker': TrackerParams(roi_mask=roi)})
+                          progress=False, params={'tracker': TrackerParams(roi_mask=roi),
+                                                  'reconstructor': ReconstructorParams(
+                                                      min_seen=0.0)})
         assert rep.failures == [] and rep.outputs['nrsfm/points'] == 30
         sc = score(read_clouds(out, seq.stamps_ns), seq)
         assert sc.unscored == []
