@@ -36,8 +36,8 @@ def scene():
     return W, V, d['S'], np.arange(P + Q)
 
 
-def _run(W, V, ids, **kw):
-    s = StreamNRSfM(mode='batch', batch_frames=F, **kw)
+def _run(W, V, ids, mode='batch', **kw):
+    s = StreamNRSfM(mode=mode, batch_frames=F, **kw)
     out = []
     for f in range(F):
         out += s.push(ids, W[2 * f:2 * f + 2].T, V[f])
@@ -59,6 +59,16 @@ def test_background_tracks_are_left_out_counted_and_the_surface_gains(scene):
     e0 = score_stream(clouds0, ids[:P], S).summary()
     assert e['e3d'] < 0.6 * e0['e3d'], (e, e0)
     assert e['e3d'] < 0.6 * min(e['static'], e['flat']), e
+
+
+@pytest.mark.parametrize('mode', ['dspr', 'spva'])
+def test_the_prior_modes_keep_every_track(scene, mode):
+    """dspr's frames after its prior and spva's prior term take every track: their first
+    batch keeps the rarely seen ones too."""
+    W, V, S, ids = scene
+    s, clouds = _run(W, V, ids, mode=mode)
+    assert s.tracks_left_out == 0
+    assert np.array_equal(clouds[0][1], ids)
 
 
 def test_the_share_counts_the_frames_that_report_a_track(scene):
