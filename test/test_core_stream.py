@@ -528,3 +528,29 @@ def test_a_planar_batch_is_also_refined_from_its_crossings(monkeypatch):
     assert len(calls) == 2                       # as solved, and reflected after frame 30
     assert out.residual_px == 0.5
     assert (out.S[31:, 1, 2] < 0).all() and (out.S[:31, 1, 2] > 0).all()
+
+
+def test_online_keeps_its_basis_past_tracks_its_window_left_out(face, monkeypatch):
+    """Tracks the first window reported but saw once (left out of the basis: a background the
+    tracker loses at once) are not new tracks: online goes on fitting frames to its basis
+    instead of re-solving the window for every frame (before: a window solve per frame)."""
+    d, ids = face
+    F, P = d['V'].shape
+    Q = P // 4                                  # 20% of every frame's tracks
+    rng = np.random.default_rng(0)
+    W = np.concatenate([d['W'], rng.uniform(-1, 1, (2 * F, Q))], axis=1)
+    V = np.concatenate([d['V'], np.zeros((F, Q))], axis=1)
+    V[0, P:] = 1.0                              # seen once, in the first frame
+    all_ids = np.arange(P + Q)
+    solves = []
+    real = StreamNRSfM._solve_window
+    monkeypatch.setattr(StreamNRSfM, '_solve_window',
+                        lambda self: solves.append(1) or real(self))
+    s = StreamNRSfM(mode='online', window=10)
+    got = []
+    for f in range(F):
+        got += s.push(all_ids, W[2 * f:2 * f + 2].T, V[f])
+    got += s.flush()
+    assert [sh.index for sh in got] == list(range(F))
+    assert len(solves) == 1
+    assert all(np.isin(sh.ids, ids).all() for sh in got)

@@ -358,6 +358,7 @@ class StreamNRSfM:
         self._count = 0
         self._last: tuple[np.ndarray, NRSfMResult] | None = None   # window warm start
         self._basis: tuple[np.ndarray, np.ndarray] | None = None   # online: ids, (K, 3, P)
+        self._known = np.empty(0, np.int64)     # online: every id the basis' window reported
         self._R2 = np.eye(3)[:2]
         self._a = np.zeros(rank)
         self.fallbacks: list[tuple[int, str]] = []   # (frame, why) published by a fallback
@@ -567,6 +568,7 @@ class StreamNRSfM:
         out = self._emit(frames, ids, res, list(self._pending))
         if self.mode == 'online' and self._basis is None:
             self._init_basis(ids, res)
+            self._known = sorted_unique(np.concatenate([f.ids for f in frames]))
         return out
 
     def _solve_batch(self, frames: list[_Frame], spva: bool = False) -> list[StreamShape]:
@@ -989,8 +991,10 @@ class StreamNRSfM:
         self._R2 = res.R[-1, :2]
 
     def _new_fraction(self, fr: _Frame) -> float:
+        """The share of a frame's tracks the basis' window never reported (one it reported
+        but left out, seen in under ``MIN_OBSERVED`` of its frames, is not new)."""
         assert self._basis is not None
-        return float((~_lookup(self._basis[0], fr.ids)[1]).mean())
+        return float((~_lookup(self._known, fr.ids)[1]).mean())
 
     def _fit_online(self, fr: _Frame) -> StreamShape:
         assert self._basis is not None
