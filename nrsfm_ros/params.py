@@ -263,7 +263,7 @@ class ReconstructorParams(Params):
                               'tracks (published already: context only, for the camera motion '
                               'before the batch), and the last partial batch with the frames '
                               'before it up to batch_frames; 0: every batch alone')
-    min_seen: float = rule(0.7, _unit_or_zero, 'batch mode: a track enters a batch solve, '
+    min_seen: float = rule(0.7, _unit_or_zero, 'batch and dspr: a track enters a batch solve, '
                            'and its clouds, where the tracker saw it (visibility >= 0.5) in at '
                            'least this share of the batch frames that report it: one lost most '
                            'of the time (a textured background sliding behind the surface, '

@@ -61,14 +61,42 @@ def test_background_tracks_are_left_out_counted_and_the_surface_gains(scene):
     assert e['e3d'] < 0.6 * min(e['static'], e['flat']), e
 
 
-@pytest.mark.parametrize('mode', ['dspr', 'spva'])
-def test_the_prior_modes_keep_every_track(scene, mode):
-    """dspr's frames after its prior and spva's prior term take every track: their first
-    batch keeps the rarely seen ones too."""
+def test_spva_keeps_every_track(scene):
+    """spva's prior term fills what an occluder hides: its first batch keeps the rarely seen
+    tracks too."""
     W, V, S, ids = scene
-    s, clouds = _run(W, V, ids, mode=mode)
+    s, clouds = _run(W, V, ids, mode='spva')
     assert s.tracks_left_out == 0
     assert np.array_equal(clouds[0][1], ids)
+
+
+def test_dspr_leaves_the_same_tracks_out_of_its_frames_after_the_prior(scene):
+    """dspr's first batch leaves the rarely seen tracks out, and its frames after the prior
+    too (taken as new tracks at their neighbours' depth they cost the periodic cap 0.043 ->
+    0.050); a track new since the prior is still published."""
+    W, V, S, ids = scene
+    Vd = V.copy()
+    Vd[:, P:] = 0.0
+    for q in range(Q):                           # each background track seen in 4 of the
+        Vd[q % 16:q % 16 + 4, P + q] = 1.0       # prior's 20 frames
+    s = StreamNRSfM(mode='dspr', batch_frames=20)
+    out = {}
+    new_id = 10_000
+    for f in range(F):
+        fid, fuv, fv = ids, W[2 * f:2 * f + 2].T, Vd[f]
+        if f >= 20:                              # a track new since the prior
+            fid = np.append(fid, new_id)
+            fuv, fv = np.vstack([fuv, fuv[:1] + 0.01]), np.append(fv, 1.0)
+        for sh in s.push(fid, fuv, fv):
+            out[sh.index] = sh
+    for sh in s.flush():
+        out[sh.index] = sh
+    assert sorted(out) == list(range(F)) and s.prior is not None
+    assert s.tracks_left_out == Q
+    for f in range(F):
+        assert not np.isin(ids[P:], out[f].ids).any(), f
+        assert np.isin(ids[:P], out[f].ids).all(), f
+    assert all(new_id in out[f].ids for f in range(20, F))
 
 
 def test_the_share_counts_the_frames_that_report_a_track(scene):

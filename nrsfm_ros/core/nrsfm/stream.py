@@ -359,6 +359,7 @@ class StreamNRSfM:
         self._last: tuple[np.ndarray, NRSfMResult] | None = None   # window warm start
         self._basis: tuple[np.ndarray, np.ndarray] | None = None   # online: ids, (K, 3, P)
         self._known = np.empty(0, np.int64)     # online: every id the basis' window reported
+        self._left_out = np.empty(0, np.int64)  # the ids the last batch left out (min_seen)
         self._R2 = np.eye(3)[:2]
         self._a = np.zeros(rank)
         self.fallbacks: list[tuple[int, str]] = []   # (frame, why) published by a fallback
@@ -541,17 +542,18 @@ class StreamNRSfM:
     def _batch_tracks(self, frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``_tracks`` less those seen in fewer than ``min_seen`` of the frames that report
         them, where at least ``MIN_SEEN_TRACKS`` remain (``tracks_left_out`` counts them), in
-        mode ``batch``: ``spva``'s prior term fills what an occluder hides, and ``dspr``'s
-        later frames take every track (one new since the prior gets its neighbours' depth; a
-        first batch without the rarely-seen ones: the periodic cap 0.043 -> 0.050)."""
+        modes ``batch`` and ``dspr`` (whose frames after the prior leave the same ids out:
+        taken at their neighbours' depth as new tracks they cost the periodic cap 0.043 ->
+        0.050; left out, 0.032); ``spva``'s prior term fills what an occluder hides."""
         ids, W, V = self._tracks(frames)
-        self.tracks_left_out = 0
-        if self.mode != 'batch' or self.min_seen <= 0:
+        self.tracks_left_out, self._left_out = 0, np.empty(0, ids.dtype)
+        if self.mode not in ('batch', 'dspr') or self.min_seen <= 0:
             return ids, W, V
         often = (V >= 0.5).sum(axis=0) >= self.min_seen * (V > 0).sum(axis=0)
         if often.all() or often.sum() < MIN_SEEN_TRACKS:
             return ids, W, V
         self.tracks_left_out = int((~often).sum())
+        self._left_out = ids[~often]            # dspr: left out of its later frames too
         return ids[often], W[:, often], V[:, often]
 
     # ------------------------------------------------------------------ solves
@@ -892,8 +894,12 @@ class StreamNRSfM:
 
     def _step_dspr(self, fr: _Frame) -> StreamShape:
         """One frame through the prior; tracks not in the prior at their image neighbours'
-        depth; the flat shape (recorded in ``fallbacks``) when too few prior tracks are seen."""
+        depth, but for those the prior's batch left out (``min_seen``); the flat shape
+        (recorded in ``fallbacks``) when too few prior tracks are seen."""
         assert self.prior is not None
+        if self._left_out.size and self.mode == 'dspr':
+            k = ~_lookup(self._left_out, fr.ids)[1]
+            fr = _Frame(fr.index, fr.ids[k], fr.uv[k], fr.vis[k])
         pids = self._prior_ids
         col, have = _lookup(pids, fr.ids)
         uv = np.full((pids.size, 2), np.nan)
