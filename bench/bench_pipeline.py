@@ -59,6 +59,7 @@ import sys
 import tempfile
 import inspect
 import time
+from collections.abc import Callable
 from dataclasses import fields, replace
 from pathlib import Path
 
@@ -401,18 +402,16 @@ def main() -> None:
                    + [f4(r[m]) for m in pipe_cols]
                    + [f"{r['frames_in']}/{r['frames_out']}", f"{r['ratio_pipeline']:.2f}",
                       f"{r['ratio_stream_gt']:.2f}"] for r in rows])
-    print()
-    table(['surface', 'cam deg', 'amp', 'occl', 'frames depth-reflected: stream(GT)']
-          + [f'{m}' for m in modes],
-          [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
-            'yes' if r['occluder'] else 'no', f"{r['stream_gt_inverted']}/{r['frames_in']}"]
-           + [f"{r[f'{m}_inverted']}/{r['frames_in']}" for m in modes] for r in rows])
-    print()
-    table(['surface', 'cam deg', 'amp', 'occl', 'surface points a frame: stream(GT)']
-          + [f'{m}' for m in modes],
-          [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
-            'yes' if r['occluder'] else 'no', f"{r['stream_gt_points']:.0f}"]
-           + [f"{r[f'{m}_points']:.0f}" for m in modes] for r in rows])
+
+    def per_case(title: str, cell: Callable[[dict, str], str]) -> None:
+        """One column per stream (``stream_gt`` and each mode) of a per-case quantity."""
+        print()
+        table(['surface', 'cam deg', 'amp', 'occl', f'{title}: stream(GT)'] + list(modes),
+              [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}",
+                'yes' if r['occluder'] else 'no', cell(r, 'stream_gt')]
+               + [cell(r, m) for m in modes] for r in rows])
+    per_case('frames depth-reflected', lambda r, m: f"{r[f'{m}_inverted']}/{r['frames_in']}")
+    per_case('surface points a frame', lambda r, m: f"{r[f'{m}_points']:.0f}")
     occ_rows = [[r['surface'], f"{r['motion_deg']:g}", f"{r['amplitude']:g}", m, f4(r[m]),
                  f4(r[f'{m}_occluded']), f4(r[f'{m}_visible']),
                  f"{r[f'{m}_occluded'] / r[f'{m}_visible']:.2f}"]
