@@ -897,7 +897,7 @@ class StreamNRSfM:
         depth, but for those the prior's batch left out (``min_seen``); the flat shape
         (recorded in ``fallbacks``) when too few prior tracks are seen."""
         assert self.prior is not None
-        if self._left_out.size and self.mode == 'dspr':
+        if self._left_out.size:                # dspr (spva's first batch leaves none out)
             k = ~_lookup(self._left_out, fr.ids)[1]
             fr = _Frame(fr.index, fr.ids[k], fr.uv[k], fr.vis[k])
         pids = self._prior_ids
