@@ -10,16 +10,19 @@ from .core.nrsfm import _admm, _planar_kernels
 
 
 def warm() -> None:
-    """One call of each kernel on tiny float64 arrays, with the argument types the solvers
-    pass (so the compiled specialisations are the ones they use)."""
+    """One call of each kernel on tiny arrays, with the argument types the solvers pass (so
+    the compiled specialisations are the ones they use): the ADMM's in ``ADMM_DTYPE``."""
+    from .core.nrsfm.bmm import ADMM_DTYPE
     F, P = 2, 4
-    z = np.zeros((F, 3, P))
-    eye = np.tile(np.eye(3), (F, 1, 1))
-    _admm.data_step(z, z.copy(), z.copy(), eye, np.ones((F, 3)), np.ones((F, P)), 1.0, 1.0,
-                    z.copy(), z.copy())
-    _admm.dual_step(z, z.copy(), z.copy(), z.copy(), 1.0)
+    dt = np.dtype(ADMM_DTYPE).type
+    z = np.zeros((F, 3, P), dt)
+    eye = np.tile(np.eye(3, dtype=dt), (F, 1, 1))
+    _admm.data_step(z, z.copy(), z.copy(), eye, np.ones((F, 3), dt), np.ones((F, P), dt),
+                    dt(1.0), dt(1.0), dt(1.0), z.copy(), z.copy())
+    _admm.dual_step(z, z.copy(), z.copy(), z.copy(), dt(1.0))
     T = np.zeros((F, 3))
     T[:, 2] = 1.0
+    eye = np.tile(np.eye(3), (F, 1, 1))
     _planar_kernels.final_passes(np.ones((P, F, 3)), np.ones((P, F)), eye, T, np.ones((F, 2)),
                                  np.zeros((P, 2)), np.zeros((P, F)), 0.01, 2, 1e-9)
 

@@ -461,11 +461,16 @@ def test_ray_bad_setup_one_error_line(bags, tmp_path, capsys, monkeypatch, case,
 def test_the_fork_servers_warm_up_loads_every_numba_kernel():
     """nrsfm_ros.warm (preloaded by the fleet's fork server, so forked workers do not each
     load the kernels on their first bag: bench_fleet 4 bags, --jobs 1 6.5 -> 4.8 s, --jobs 2
-    4.3 -> 2.7 s) compiles / loads every numba kernel of the package for float64 arrays."""
+    4.3 -> 2.7 s) compiles / loads every numba kernel of the package for the dtypes the solvers pass."""
     import nrsfm_ros.warm  # noqa: F401 -- the import warms
     from nrsfm_ros.core.nrsfm import _admm, _planar_kernels
     from nrsfm_ros.fleet import FORKSERVER_PRELOAD
-    for kernel in (_admm.data_step, _admm.dual_step, _planar_kernels.final_passes):
+    import numpy as np
+
+    from nrsfm_ros.core.nrsfm.bmm import ADMM_DTYPE
+    admm = np.dtype(ADMM_DTYPE).name
+    for kernel, dtype in ((_admm.data_step, admm), (_admm.dual_step, admm),
+                          (_planar_kernels.final_passes, 'float64')):
         assert kernel.signatures, kernel
-        assert any('float64' in str(sig[0]) for sig in kernel.signatures), kernel.signatures
+        assert any(dtype in str(sig[0]) for sig in kernel.signatures), kernel.signatures
     assert 'nrsfm_ros.warm' in FORKSERVER_PRELOAD

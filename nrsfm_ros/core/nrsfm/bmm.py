@@ -267,34 +267,56 @@ def second_difference_banded(F: int, mu: float, rho: float) -> np.ndarray:
     return ab
 
 
+ADMM_DTYPE = np.float32   # the ADMM's arrays (bmm_shapes' ``dtype``): see bmm_shapes
+
+
+def _svt_into(X: np.ndarray, tau: float, out: np.ndarray) -> None:
+    """``_svt(X, tau)`` written into ``out`` (X's shape and dtype, not X), for F <= N: the
+    F x F Gram and its eigenvectors in float64 whatever X's dtype, the two products in X's."""
+    lam, E = np.linalg.eigh((X @ X.T).astype(np.float64))
+    s = np.sqrt(np.maximum(lam, 0.0))
+    keep = s > tau
+    if not keep.any():
+        out[...] = 0.0
+        return
+    E, s = E[:, keep], s[keep]
+    np.matmul((E * ((s - tau) / s)).astype(X.dtype), E.T.astype(X.dtype) @ X, out=out)
+
+
 def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
                iterations: int = 300, rho: float = 1e-3, rho_growth: float = 1.2,
                rho_max: float = 1e6, tol: float = 1e-6,
-               init: np.ndarray | None = None, smooth: float = 0.0
-               ) -> tuple[np.ndarray, int, bool]:
+               init: np.ndarray | None = None, smooth: float = 0.0,
+               dtype: type = ADMM_DTYPE) -> tuple[np.ndarray, int, bool]:
     """Object-frame shapes (F, 3, P) minimising the visibility-weighted data term plus
     ``lam`` x nuclear norm of S# (``lam`` relative to the data's RMS) plus, with ``smooth`` > 0,
     smooth/2 x the squared second differences of every point's trajectory over frames (the
     trajectory prior of PTA/KSTA, in units of the data's RMS), by consensus ADMM: S (per-point
     closed-form data step) = Z (singular value thresholding) = Y (one banded F x F solve shared
-    by every coordinate of every point)."""
+    by every coordinate of every point).
+
+    ``dtype``: the iterates' (F, 3, P) arrays.  float32 (the default) halves the memory every
+    iteration streams through and doubles the thresholding's BLAS rate: the shapes equal the
+    float64 ones to ~5e-6 relative (a 320x240 face's batch, 80 frames x 7.9k tracks), 2x faster
+    (BENCHMARKS issue 17, session 43).  The small eigenproblems and the residual norms stay in
+    float64; the shapes are returned as float64."""
     from scipy.linalg import solveh_banded
 
     from ._admm import data_step, dual_step
+    dt = np.dtype(dtype).type
     F, P = V.shape
     Wf = Wc.reshape(F, 2, P)
     unit = max(float(np.sqrt(np.mean(Wf ** 2))), 1e-12)
     Wf = Wf / unit
     Gm = np.einsum('fki,fkj->fij', R2, R2)
     ev, E = np.linalg.eigh(Gm)                          # (F, 3), (F, 3, 3)
-    E, ev = np.ascontiguousarray(E, np.float64), np.ascontiguousarray(ev, np.float64)
-    Vc = np.ascontiguousarray(V, np.float64)
-    RtW = np.ascontiguousarray((R2.transpose(0, 2, 1) @ Wf) * V[:, None, :],
-                               np.float64)               # (F, 3, P)
+    E, ev = np.ascontiguousarray(E, dt), np.ascontiguousarray(ev, dt)
+    Vc = np.ascontiguousarray(V, dt)
+    RtW = np.ascontiguousarray((R2.transpose(0, 2, 1) @ Wf) * V[:, None, :], dt)  # (F, 3, P)
     # initial shapes: pseudo-inverse with zero depth
-    Z = RtW.copy() if init is None else np.ascontiguousarray(init / unit, np.float64)
+    Z = RtW.copy() if init is None else np.ascontiguousarray(init / unit, dt)
     U = np.zeros_like(Z)
-    S, T = np.empty_like(Z), np.empty_like(Z)
+    S, T, Zn = np.empty_like(Z), np.empty_like(Z), np.empty_like(Z)   # reused every iteration
     use_y = smooth > 0 and F >= 3
     Y, U2 = (Z.copy(), np.zeros_like(Z)) if use_y else (None, None)
     tau = lam * np.sqrt(P)
@@ -303,24 +325,29 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     for it in range(1, iterations + 1):
         # S-step and T = S + U / rho fused (core/nrsfm/_admm.py); the trajectory prior adds
         # rho Y - U2 to the linear term and rho to the diagonal
-        lin = RtW + rho * Y - U2 if use_y else RtW
-        data_step(Z, U, lin, E, ev, Vc, rho, (2 if use_y else 1) * rho, S, T)
-        Zn = np.ascontiguousarray(_svt(T.reshape(F, 3 * P), tau / rho).reshape(F, 3, P))
-        r_primal, r_dual = dual_step(S, Zn, Z, U, rho)
+        lin = RtW + dt(rho) * Y - U2 if use_y else RtW
+        data_step(Z, U, lin, E, ev, Vc, dt(rho), dt((2 if use_y else 1) * rho), dt(1.0 / rho),
+                  S, T)
+        if F <= 3 * P:
+            _svt_into(T.reshape(F, 3 * P), tau / rho, Zn.reshape(F, 3 * P))
+        else:
+            Zn[...] = _svt(T.reshape(F, 3 * P), tau / rho).reshape(F, 3, P)
+        r_primal, r_dual = dual_step(S, Zn, Z, U, dt(rho))
         if use_y:
             ab = ab0.copy()
             ab[2] += rho
             Yn = solveh_banded(ab, (rho * S + U2).reshape(F, 3 * P)).reshape(F, 3, P)
-            U2 = U2 + rho * (S - Yn)
+            Yn = Yn.astype(dt, copy=False)
+            U2 = U2 + dt(rho) * (S - Yn)
             r_primal = max(r_primal, float(np.linalg.norm(S - Yn)))
             r_dual = max(r_dual, rho * float(np.linalg.norm(Yn - Y)))
             Y = Yn
-        Z = Zn
+        Z, Zn = Zn, Z
         rho = min(rho * rho_growth, rho_max)
-        if it > 10 and max(r_primal, r_dual) <= tol * max(np.linalg.norm(Z), 1e-12):
+        if it > 10 and max(r_primal, r_dual) <= tol * max(float(np.linalg.norm(Z)), 1e-12):
             converged = True
             break
-    return Z * unit, it, converged
+    return Z.astype(np.float64) * unit, it, converged
 
 
 def depth_em(Wc: np.ndarray, R2: np.ndarray, S: np.ndarray, K: int, iterations: int = 500,
