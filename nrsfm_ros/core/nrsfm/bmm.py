@@ -297,9 +297,10 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
 
     ``dtype``: the iterates' (F, 3, P) arrays.  float32 (the default) halves the memory every
     iteration streams through and doubles the thresholding's BLAS rate: the shapes equal the
-    float64 ones to ~5e-6 relative (a 320x240 face's batch, 80 frames x 7.9k tracks), 2x faster
-    (BENCHMARKS issue 17, session 43).  The small eigenproblems and the residual norms stay in
-    float64; the shapes are returned as float64."""
+    float64 ones to ~5e-6 relative at the stream's 16-40 iterations (a 320x240 face's batch, 80
+    frames x 7.9k tracks), 2x faster (BENCHMARKS issue 17, session 43), and to ~2e-4 after
+    100+ iterations (the penalty grown 1e5-fold, the data step's rho Z - U cancels).  The small
+    eigenproblems and the residual norms stay in float64; the shapes are returned as float64."""
     from scipy.linalg import solveh_banded
 
     from ._admm import data_step, dual_step
