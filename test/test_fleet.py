@@ -461,7 +461,8 @@ def test_ray_bad_setup_one_error_line(bags, tmp_path, capsys, monkeypatch, case,
 def test_the_fork_servers_warm_up_loads_every_numba_kernel():
     """nrsfm_ros.warm (preloaded by the fleet's fork server, so forked workers do not each
     load the kernels on their first bag: bench_fleet 4 bags, --jobs 1 6.5 -> 4.8 s, --jobs 2
-    4.3 -> 2.7 s) compiles / loads every numba kernel of the package for the dtypes the solvers pass."""
+    4.3 -> 2.7 s) compiles / loads every numba kernel of the package for the dtypes the
+    solvers pass."""
     import nrsfm_ros.warm  # noqa: F401 -- the import warms
     from nrsfm_ros.core.nrsfm import _admm, _planar_kernels
     from nrsfm_ros.fleet import FORKSERVER_PRELOAD
