@@ -205,10 +205,10 @@ def test_bmm_admm_kernels_equal_the_numpy_expressions():
 
 def test_bmm_shapes_float32_iterates_equal_float64_and_keep_the_caller_arrays():
     """bmm_shapes' ADMM in float32 (ADMM_DTYPE, the default) gives the float64 iterates'
-    shapes to ~6e-6 relative at the stream's 40 iterations and ~2e-4 after 120 (the penalty
-    grown 1e5-fold: the data step's rho Z - U cancels), with and without hidden entries and
-    the trajectory prior; its reused buffers leave the caller's start untouched; the shapes
-    come back float64."""
+    shapes to ~6e-6 relative at the stream's 40 iterations and ~2e-4 after 120 (the float32
+    Gram's resolution of small singular values, which the threshold tau / rho reaches as rho
+    grows), with and without hidden entries and the trajectory prior; its reused buffers leave
+    the caller's start untouched; the shapes come back float64."""
     bmm_mod = __import__('sys').modules['nrsfm_ros.core.nrsfm.bmm']
     assert bmm_mod.ADMM_DTYPE == np.float32
     W, S, R = low_rank_sequence(K=2, F=30, P=300, seed=4)

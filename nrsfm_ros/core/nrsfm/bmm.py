@@ -299,8 +299,10 @@ def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
     iteration streams through and doubles the thresholding's BLAS rate: the shapes equal the
     float64 ones to ~5e-6 relative at the stream's 16-40 iterations (a 320x240 face's batch, 80
     frames x 7.9k tracks), 2x faster (BENCHMARKS issue 17, session 43), and to ~2e-4 after
-    100+ iterations (the penalty grown 1e5-fold, the data step's rho Z - U cancels).  The small
-    eigenproblems and the residual norms stay in float64; the shapes are returned as float64."""
+    100+ iterations: the float32 Gram resolves singular values to ~sqrt(eps32) = 3e-4 of the
+    largest, which the threshold tau / rho reaches as rho grows (a float64 Gram keeps 3e-6
+    there at 3x its cost).  The small eigenproblems and the residual norms stay in float64;
+    the shapes are returned as float64."""
     from scipy.linalg import solveh_banded
 
     from ._admm import data_step, dual_step
