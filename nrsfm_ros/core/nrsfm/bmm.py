@@ -280,7 +280,11 @@ def _svt_into(X: np.ndarray, tau: float, out: np.ndarray) -> None:
         out[...] = 0.0
         return
     E, s = E[:, keep], s[keep]
-    np.matmul((E * ((s - tau) / s)).astype(X.dtype), E.T.astype(X.dtype) @ X, out=out)
+    A, B = (E * ((s - tau) / s)).astype(X.dtype), E.T.astype(X.dtype) @ X
+    if A.shape[1] == 1:     # NumPy's matmul over an inner dimension of 1 is not BLAS: 1.9 ms
+        np.multiply(A, B, out=out)      # against 0.1 ms at F = 80, 3P = 24k (a third of the
+    else:                               # face batch's iterations keep one component)
+        np.matmul(A, B, out=out)
 
 
 def bmm_shapes(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, lam: float = 0.01,
