@@ -78,6 +78,15 @@ BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above
 #   (nearly rigid: static 0.026-0.054) 0.19-0.58 without the occluder, 0.69-1.49 with it (bmm's
 #   e3D 0.08-0.18 there against rigid's 0.025-0.067); the cap at 12 deg 0.24 (bmm 0.20, rigid
 #   0.27); the mocap sets of ../shared/data/nrsfm 0.00-0.26 (face 0.26, the rest <= 0.12).
+SMALL_RANGE_DEG = 25.0    # auto: cameras turning less than this over a batch barely observe
+#   depth: bmm's nuclear norm flattens it (relief 0.21-0.22 against the truth's 0.32-0.34 on
+#   the face at 12 deg, 15 deg of camera rotation, through the tracker) ...
+RANGE_AGREEMENT = 0.9     # ... so where the rigid factorisation's cameras turn at least this x
+#   as far as bmm's (its depth not stretched by the bas-relief ambiguity, which shrinks its
+#   rotation: the breathing cap at 12 deg 8 / 20 deg, relief 0.84 against 0.43) rigid is taken.
+#   The 48-case sweep: the face at 12 deg 0.0787 / 0.0954 -> 0.0268 / 0.0602 (static 0.0256 /
+#   0.0497), ground-truth tracks 0.0826 -> 0.0248, no other case changed (BENCHMARKS issue 12,
+#   session 43)
 BMM_LAM = 4.0            # bmm's lam (its own default) for batches up to BMM_LAM_FRAMES frames
 BMM_LAM_FRAMES = 60       # longer batches scale it by sqrt(frames / BMM_LAM_FRAMES): the
 #   tracker's errors are smooth in time, low rank as the deformation is, and their singular
@@ -228,6 +237,27 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
     return reconstruct(W, V, method=method, **kw)
 
 
+def rotation_range_deg(R: np.ndarray) -> float:
+    """The largest rotation (degrees) of a batch's cameras R (F, 3, 3; a reflected camera
+    counts as its proper partner) away from its first frame's."""
+    from scipy.spatial.transform import Rotation
+    R = np.array(R, dtype=np.float64)
+    R[np.linalg.det(R) < 0, 2] *= -1.0
+    return float(np.degrees(Rotation.from_matrix(
+        np.einsum('fji,jk->fik', R, R[0])).magnitude()).max())
+
+
+def rigid_observed(rig: NRSfMResult, trial: NRSfMResult) -> bool:
+    """``auto``'s second test of ``bmm`` (``trial``) against rigid (``rig``, the same tracks):
+    both cameras turn less than ``SMALL_RANGE_DEG`` over the batch, where ``bmm`` flattens the
+    depth the views barely observe, and rigid's cameras turn at least ``RANGE_AGREEMENT`` x as
+    far as ``bmm``'s, so its depth is not stretched by the bas-relief ambiguity: rigid is then
+    the better shape (the face at 12 deg 3x ``bmm``'s e3D), and where rigid's rotation is
+    shrunk ``bmm`` stays (the breathing cap at 12 deg, rigid's relief twice the truth's)."""
+    rr, rb = rotation_range_deg(rig.R), rotation_range_deg(trial.R)
+    return max(rr, rb) < SMALL_RANGE_DEG and rr >= RANGE_AGREEMENT * rb
+
+
 def auto_solve(W: np.ndarray, V: np.ndarray,
                perspective: tuple[float, np.ndarray] | None = None,
                planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
@@ -241,7 +271,8 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     ``bmm`` explains less than ``1 - BMM_RIGID_RATIO`` of the reprojection residual that the
     rigid factorisation leaves: its per-frame shapes then fit what the rigid shape cannot by
     depths the camera motion does not observe (or its fill of hidden tracks failed), and rigid
-    is taken."""
+    is taken; or where the cameras turn too little to observe the deformation's depth and the
+    rigid factorisation's cameras turn as far as bmm's (``rigid_observed``)."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
     from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, planar,
@@ -267,8 +298,9 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     sub = idx.size < V.shape[1]
     trial = bmm(W[:, idx], V[:, idx], lam=lam, iterations=BMM_ITERATIONS) if sub else \
         bmm(W, V, lam=lam, iterations=BMM_ITERATIONS)
-    base = rigid_residual(safe_rigid(W[:, idx], V[:, idx]) if sub else rig)
-    if trial.residual_px > BMM_RIGID_RATIO * base:
+    rig_sub = safe_rigid(W[:, idx], V[:, idx]) if sub else rig
+    if trial.residual_px > BMM_RIGID_RATIO * rigid_residual(rig_sub) or \
+            (rig_sub is not None and rigid_observed(rig_sub, trial)):
         return rig
     if not sub:
         return trial
