@@ -69,7 +69,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from benchlib import parser, table  # noqa: E402
-from nrsfm_ros.core.metrics import rotation_angle_deg  # noqa: E402
+from nrsfm_ros.core.metrics import rotation_range_deg  # noqa: E402
 from nrsfm_ros.core.nrsfm import reconstruct  # noqa: E402
 from nrsfm_ros.core.nrsfm.perspective import corrected_tracks  # noqa: E402
 from nrsfm_ros.evaluation import (depth_reflected_frames, read_clouds,  # noqa: E402
@@ -96,8 +96,7 @@ def stream_overrides(rec: ReconstructorParams) -> dict:
 
 def camera_range_deg(T: np.ndarray) -> float:
     """Largest rotation between any frame's camera and frame 0's (deg)."""
-    R0 = T[0, :3, :3]
-    return max(rotation_angle_deg(R0 @ T[f, :3, :3].T) for f in range(T.shape[0]))
+    return rotation_range_deg(T[:, :3, :3])
 
 
 def occluded_split(clouds: dict, seq) -> tuple[float, float]:

@@ -664,7 +664,7 @@ def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
 
 
 def test_rotation_range_counts_a_reflected_camera_as_its_proper_partner():
-    from nrsfm_ros.core.nrsfm.stream import rotation_range_deg
+    from nrsfm_ros.core.metrics import rotation_range_deg
     R = Rotation.from_euler('y', np.linspace(0, 15, 31)[:, None], degrees=True).as_matrix()
     assert rotation_range_deg(R) == pytest.approx(15.0)
     Rr = R.copy()

@@ -98,6 +98,16 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def rotation_range_deg(R: np.ndarray) -> float:
+    """The largest rotation (degrees) of a sequence of cameras R (F, 3, 3; a reflected camera,
+    det -1, counts as its proper partner) away from the first one's."""
+    R = np.array(R, dtype=np.float64)
+    R[np.linalg.det(R) < 0, 2] *= -1.0
+    rel = np.einsum('fji,jk->fik', R, R[0])
+    c = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))).max())
+
+
 def rotation_error_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
     return rotation_angle_deg(np.asarray(R_est).T @ np.asarray(R_true))
 

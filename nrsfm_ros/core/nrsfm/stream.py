@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from ..arrays import duplicates, sorted_unique
+from ..metrics import rotation_range_deg
 from .dspr import DynamicShapePrior, necker_partner, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
@@ -235,16 +236,6 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
     if method == 'planar':          # chosen (by the user or by auto's first decision): the
         kw = {'rigid_check': False}  # stream never reads converged, skip its rigid solve
     return reconstruct(W, V, method=method, **kw)
-
-
-def rotation_range_deg(R: np.ndarray) -> float:
-    """The largest rotation (degrees) of a batch's cameras R (F, 3, 3; a reflected camera
-    counts as its proper partner) away from its first frame's."""
-    from scipy.spatial.transform import Rotation
-    R = np.array(R, dtype=np.float64)
-    R[np.linalg.det(R) < 0, 2] *= -1.0
-    return float(np.degrees(Rotation.from_matrix(
-        np.einsum('fji,jk->fik', R, R[0])).magnitude()).max())
 
 
 def rigid_observed(rig: NRSfMResult, trial: NRSfMResult) -> bool:
