@@ -6,6 +6,9 @@ Each processor takes a message (rclpy or rosbags: both expose the same attribute
 """
 from __future__ import annotations
 
+import importlib
+import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -464,6 +467,21 @@ def make_stream(params: ReconstructorParams, **overrides: Any) -> StreamNRSfM:
     return StreamNRSfM(**{**kw, **overrides})
 
 
+_WARMING = threading.Event()
+
+
+def warm_in_background() -> None:
+    """Import :mod:`.warm` (the numba kernels loaded with the solvers' argument types) in a
+    daemon thread, once a process: their loading (~0.3-0.5 s) then runs beside the tracker's
+    first frames instead of inside the first batch solve (numba's compiler lock keeps a
+    kernel called meanwhile from loading twice)."""
+    if _WARMING.is_set() or f'{__package__}.warm' in sys.modules:
+        return
+    _WARMING.set()
+    threading.Thread(target=importlib.import_module, args=(f'{__package__}.warm',),
+                     name='nrsfm-warm', daemon=True).start()
+
+
 class ReconstructorProcessor(Processor):
     """nrsfm/tracks -> nrsfm/points (x, y, z, rgb, track_id, visibility: the tracker's for that
     track and frame, 0 where the frame's tracks lack it) + nrsfm/depth (32FC1 metres, NaN
@@ -482,6 +500,7 @@ class ReconstructorProcessor(Processor):
         self.K: np.ndarray | None = None
         self.image_size: tuple[int, int] | None = None
         self._reset()
+        warm_in_background()
 
     def _reset(self) -> None:
         p = self.params

@@ -308,3 +308,110 @@ def orthonormal_rows_fit(B: np.ndarray, C: np.ndarray, lam: np.ndarray, R2: np.n
             U, _, Vt = np.linalg.svd(M, full_matrices=False)
             R2[k] = U @ Vt
     return R2, s, num
+
+
+@njit(cache=True, nogil=True)
+def bundle_residuals(fi: np.ndarray, pi: np.ndarray, uv: np.ndarray, R: np.ndarray,
+                     T: np.ndarray, X: np.ndarray, focal: float, c: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``rigid_pinhole.fit_rigid_pinhole``'s residuals: for observations k of point pi[k] in
+    frame fi[k], ``RX`` = R_f X_p, ``Y`` = RX + T_f (camera frame) and ``r`` (n, 2) =
+    focal Y_xy / max(Y_z, 1e-9) + c - uv_k px."""
+    n = fi.size
+    r = np.empty((n, 2))
+    Y = np.empty((n, 3))
+    RX = np.empty((n, 3))
+    for k in range(n):
+        f, p = fi[k], pi[k]
+        for i in range(3):
+            v = R[f, i, 0] * X[p, 0] + R[f, i, 1] * X[p, 1] + R[f, i, 2] * X[p, 2]
+            RX[k, i] = v
+            Y[k, i] = v + T[f, i]
+        z = max(Y[k, 2], 1e-9)
+        r[k, 0] = focal * Y[k, 0] / z + c[0] - uv[k, 0]
+        r[k, 1] = focal * Y[k, 1] / z + c[1] - uv[k, 1]
+    return r, Y, RX
+
+
+@njit(cache=True, nogil=True)
+def bundle_normal_equations(fi: np.ndarray, pi: np.ndarray, r: np.ndarray, Y: np.ndarray,
+                            RX: np.ndarray, R: np.ndarray, focal: float, scale2: float,
+                            E: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``rigid_pinhole.fit_rigid_pinhole``'s normal equations, soft-L1 weighted (IRLS weight
+    1 / sqrt(1 + |r|^2 / scale2)): per frame the pose block A (F, 6, 6) and gradient gc (F,
+    6) (a left rotation vector, then the translation), per point B (P, 3, 3) and gx (P, 3),
+    per observation the pose-point block C (n, 6, 3), also written to E[f, :, p] (E: (F, 6,
+    P, 3), the rows of the Schur complement's product)."""
+    F, P = E.shape[0], E.shape[2]
+    n = fi.size
+    A = np.zeros((F, 6, 6))
+    B = np.zeros((P, 3, 3))
+    gc = np.zeros((F, 6))
+    gx = np.zeros((P, 3))
+    C = np.empty((n, 6, 3))
+    jc = np.empty((2, 6))
+    jx = np.empty((2, 3))
+    for k in range(n):
+        f, p = fi[k], pi[k]
+        z = max(Y[k, 2], 1e-9)
+        a = focal / z
+        x0, x1, x2 = RX[k, 0], RX[k, 1], RX[k, 2]
+        for row in range(2):
+            j0 = a if row == 0 else 0.0
+            j1 = a if row == 1 else 0.0
+            j2 = -focal * Y[k, row] / (z * z)
+            # d(Y)/d(w) for R <- exp([w]x) R is -[R X]x: a row j gives (R X) x j
+            jc[row, 0] = x1 * j2 - x2 * j1
+            jc[row, 1] = x2 * j0 - x0 * j2
+            jc[row, 2] = x0 * j1 - x1 * j0
+            jc[row, 3], jc[row, 4], jc[row, 5] = j0, j1, j2
+            for i in range(3):
+                jx[row, i] = j0 * R[f, 0, i] + j1 * R[f, 1, i] + j2 * R[f, 2, i]
+        w = 1.0 / np.sqrt(1.0 + (r[k, 0] * r[k, 0] + r[k, 1] * r[k, 1]) / scale2)
+        for i in range(6):
+            wi0, wi1 = w * jc[0, i], w * jc[1, i]
+            gc[f, i] += wi0 * r[k, 0] + wi1 * r[k, 1]
+            for j in range(6):
+                A[f, i, j] += wi0 * jc[0, j] + wi1 * jc[1, j]
+            for j in range(3):
+                v = wi0 * jx[0, j] + wi1 * jx[1, j]
+                C[k, i, j] = v
+                E[f, i, p, j] = v
+        for i in range(3):
+            wi0, wi1 = w * jx[0, i], w * jx[1, i]
+            gx[p, i] += wi0 * r[k, 0] + wi1 * r[k, 1]
+            for j in range(3):
+                B[p, i, j] += wi0 * jx[0, j] + wi1 * jx[1, j]
+    return A, B, gc, gx, C
+
+
+@njit(cache=True, nogil=True)
+def bundle_schur_rows(E: np.ndarray, Binv: np.ndarray) -> np.ndarray:
+    """E (F, 6, P, 3) with each point's 3x3 block multiplied by Binv[p]: (6F, 3P), the left
+    factor of the Schur complement's product E B^-1 E^T."""
+    F, P = E.shape[0], E.shape[2]
+    out = np.empty((6 * F, 3 * P))
+    for f in range(F):
+        for i in range(6):
+            k = 6 * f + i
+            for p in range(P):
+                e0, e1, e2 = E[f, i, p, 0], E[f, i, p, 1], E[f, i, p, 2]
+                for j in range(3):
+                    out[k, 3 * p + j] = e0 * Binv[p, 0, j] + e1 * Binv[p, 1, j] + \
+                        e2 * Binv[p, 2, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def bundle_point_gradient(fi: np.ndarray, pi: np.ndarray, C: np.ndarray, dc: np.ndarray,
+                          gx: np.ndarray) -> np.ndarray:
+    """gx (P, 3) plus each point's sum of C_k^T dc[fi[k]] over its observations k."""
+    out = gx.copy()
+    for k in range(fi.size):
+        f, p = fi[k], pi[k]
+        for j in range(3):
+            acc = 0.0
+            for i in range(6):
+                acc += C[k, i, j] * dc[f, i]
+            out[p, j] += acc
+    return out

@@ -25,6 +25,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.fft import dct, idct
 
+from ._metric_kernels import fista_psd_trace
 from .factorization import _centre, complete_rotations, impute_low_rank
 from .result import NRSfMResult, check_tracks
 
@@ -59,20 +60,7 @@ def metric_projection_Q(Phat: np.ndarray, trace_weight: float = 1e-3, iterations
     step = 1.0 / L
     gamma = trace_weight * L
     Q = np.eye(n).ravel() / max(float(c0 @ np.eye(n).ravel()), 1e-12)
-    Y, t = Q.copy(), 1.0
-    for _ in range(iterations):
-        G = H @ Y - lin
-        Z = (Y - step * G).reshape(n, n)
-        Z = (Z + Z.T) / 2
-        lam, E = np.linalg.eigh(Z)
-        lam = np.maximum(lam - step * gamma, 0.0)
-        Qn = ((E * lam) @ E.T).ravel()
-        t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
-        Y = Qn + ((t - 1) / t_next) * (Qn - Q)
-        if np.linalg.norm(Qn - Q) <= tol * max(np.linalg.norm(Q), 1e-12):
-            Q = Qn
-            break
-        Q, t = Qn, t_next
+    Q = fista_psd_trace(np.ascontiguousarray(H), lin, Q, step, gamma, iterations, tol)
     return Q.reshape(n, n)
 
 

@@ -22,9 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
+from ._pinhole_kernels import (bundle_normal_equations, bundle_point_gradient,
+                               bundle_residuals, bundle_schur_rows)
 from .extend import spread_subset
 from .result import NRSfMResult
 
@@ -57,11 +58,6 @@ def _proper(R: np.ndarray) -> np.ndarray:
     return R
 
 
-def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n, i, j) products a_n^T b_n of (n, 2, i) and (n, 2, j) (two image rows)."""
-    return a[:, 0, :, None] * b[:, 0, None, :] + a[:, 1, :, None] * b[:, 1, None, :]
-
-
 def _robust_cost(r: np.ndarray) -> float:
     """The soft-L1 cost of residual vectors r (n, 2) px."""
     s2 = LOSS_SCALE_PX ** 2
@@ -81,52 +77,33 @@ def fit_rigid_pinhole(W: np.ndarray, V: np.ndarray, R: np.ndarray, X: np.ndarray
     if fi.size < 6 * F + 3 * P:
         raise ValueError(f'V: {fi.size} observations cannot fix {F} poses and {P} points')
     uv = np.stack([W[2 * fi, pi], W[2 * fi + 1, pi]], axis=1)
-    c = np.asarray(principal, dtype=np.float64)
+    fi, pi = fi.astype(np.int64), pi.astype(np.int64)
+    c = np.array(principal, dtype=np.float64)      # the kernels' one type: C order
     R, T, X = np.array(R, dtype=np.float64), np.array(T, dtype=np.float64), \
         np.array(X, dtype=np.float64)
 
     def residuals(R: np.ndarray, T: np.ndarray, X: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        RX = np.einsum('nij,nj->ni', R[fi], X[pi])
-        Y = RX + T[fi]
-        z = np.maximum(Y[:, 2], 1e-9)
-        return focal * Y[:, :2] / z[:, None] + c - uv, Y, RX
+        return bundle_residuals(fi, pi, uv, R, T, X, focal, c)
 
-    ones = np.ones(fi.size)
-    starts = np.searchsorted(fi, np.arange(F + 1))      # each frame's observations
-    by_frame = csr_matrix((ones, (fi, np.arange(fi.size))), shape=(F, fi.size))
-    by_point = csr_matrix((ones, (pi, np.arange(fi.size))), shape=(P, fi.size))
-    E = np.zeros((P, F, 6, 3))      # the pose-point blocks of the normal equations
+    # the pose-point blocks of the normal equations, laid out as the rows (6F, 3P) of the
+    # Schur complement's product
+    E = np.zeros((F, 6, P, 3))
+    Et = E.reshape(6 * F, 3 * P)
+    diag = np.arange(F)
     r, Y, RX = residuals(R, T, X)
     cost, lam, done = _robust_cost(r), 1e-3, 0
     for done in range(1, iterations + 1):
-        z = np.maximum(Y[:, 2], 1e-9)
-        Jy = np.zeros((fi.size, 2, 3))
-        Jy[:, 0, 0] = Jy[:, 1, 1] = focal / z
-        Jy[:, :, 2] = -focal * Y[:, :2] / (z * z)[:, None]
-        # d(Y)/d(w) for R <- exp([w]x) R is -[R X]x: a row a of Jy gives (R X) x a
-        Jc = np.concatenate([np.cross(RX[:, None, :], Jy), Jy], axis=2)     # (n, 2, 6)
-        Jx = Jy @ R[fi]                                                     # (n, 2, 3)
-        w = 1.0 / np.sqrt(1.0 + (r * r).sum(1) / LOSS_SCALE_PX ** 2)        # soft-L1 IRLS
-        wJc, wJx = Jc * w[:, None, None], Jx * w[:, None, None]
-        A = np.stack([wJc[a:b].reshape(-1, 6).T @ Jc[a:b].reshape(-1, 6)   # fi is sorted
-                      for a, b in zip(starts[:-1], starts[1:])])
-        B = (by_point @ _gram(wJx, Jx).reshape(-1, 9)).reshape(P, 3, 3)
-        gc = by_frame @ (wJc[:, 0] * r[:, :1] + wJc[:, 1] * r[:, 1:])
-        gx = by_point @ (wJx[:, 0] * r[:, :1] + wJx[:, 1] * r[:, 1:])
-        C = _gram(wJc, Jx)                                                  # (n, 6, 3)
-        E[pi, fi] = C
-        Et = E.reshape(P, 6 * F, 3)
+        A, B, gc, gx, C = bundle_normal_equations(fi, pi, r, Y, RX, R, focal,
+                                                  LOSS_SCALE_PX ** 2, E)
         while True:
             Ad = A + lam * (np.einsum('fii->fi', A)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
             Bd = B + lam * (np.einsum('pii->pi', B)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
             Binv = np.linalg.inv(Bd)
-            EB = Et @ Binv                                                  # (P, 6F, 3)
-            Sred = -(EB.transpose(1, 0, 2).reshape(6 * F, 3 * P)
-                     @ Et.transpose(1, 0, 2).reshape(6 * F, 3 * P).T)
-            for f in range(F):
-                Sred[6 * f:6 * f + 6, 6 * f:6 * f + 6] += Ad[f]
-            rhs = gc.ravel() - EB.transpose(1, 0, 2).reshape(6 * F, 3 * P) @ gx.ravel()
+            EB = bundle_schur_rows(E, Binv)
+            Sred = -(EB @ Et.T)
+            Sred.reshape(F, 6, F, 6)[diag, :, diag, :] += Ad
+            rhs = gc.ravel() - EB @ gx.ravel()
             try:
                 dc = -np.linalg.solve(Sred, rhs).reshape(F, 6)
             except np.linalg.LinAlgError:
@@ -134,8 +111,7 @@ def fit_rigid_pinhole(W: np.ndarray, V: np.ndarray, R: np.ndarray, X: np.ndarray
                 if lam > 1e8:
                     break
                 continue
-            dx = -np.einsum('pij,pj->pi', Binv,
-                            gx + by_point @ (C * dc[fi][:, :, None]).sum(1))
+            dx = -np.einsum('pij,pj->pi', Binv, bundle_point_gradient(fi, pi, C, dc, gx))
             Rn = Rotation.from_rotvec(dc[:, :3]).as_matrix() @ R
             Tn, Xn = T + dc[:, 3:], X + dx
             rn, Yn, RXn = residuals(Rn, Tn, Xn)
