@@ -6,10 +6,29 @@ import numpy as np
 import pytest
 
 from nrsfm_ros.core.nrsfm import _lowrank_kernels as K
-from nrsfm_ros.core.nrsfm.factorization import (_procrustes_cameras, _residual,
-                                                complete_rotations, low_rank, rigid)
+from nrsfm_ros.core.nrsfm.factorization import (complete_rotations, low_rank, rigid,
+                                                scaled_orthonormal)
 from nrsfm_ros.core.nrsfm.result import NRSfMResult
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM, StreamShape, _depth_agreement, _Frame
+
+
+def _procrustes_cameras(Wc, V, S):
+    """Per frame, s_f R_f for w_fp ~= s R S_fp, shapes S (F, 3, P): the array form of the
+    factorisation's camera step before it kept only the rigid case."""
+    F = V.shape[0]
+    Wf = Wc.reshape(F, 2, -1)
+    SV = S * V[:, None, :]
+    SSt = S @ SV.transpose(0, 2, 1)
+    SSt = SSt + (1e-12 * np.trace(SSt, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(3)
+    M = np.linalg.solve(SSt, (Wf @ SV.transpose(0, 2, 1)).transpose(0, 2, 1)).transpose(0, 2, 1)
+    return scaled_orthonormal(M)
+
+
+def _residual(Wc, V, R2, scale, S):
+    """The mean image distance of the visible entries, shapes S (F, 3, P)."""
+    F = V.shape[0]
+    r = Wc.reshape(F, 2, -1) - (R2 * scale[:, None, None]) @ S
+    return float((np.hypot(r[:, 0], r[:, 1]) * V).sum() / max(V.sum(), 1e-12))
 
 
 def numpy_low_rank(W, V, rank, iterations, init=None, rho=1e-2, rho_growth=1.15, tol=1e-7):
@@ -166,3 +185,47 @@ def test_low_rank_result_type(window):
     res = low_rank(W, V, rank=2, iterations=3)
     assert isinstance(res, NRSfMResult) and res.S.shape == (15, 800, 3)
     assert np.isfinite(res.S).all() and res.iterations == 3
+
+
+def test_metric_projection_fista_equals_the_array_form():
+    """bmm's metric projection (its FISTA loop in numba) against the NumPy loop it replaced:
+    the same steps, the same Q."""
+    import importlib
+    bmm = importlib.import_module('nrsfm_ros.core.nrsfm.bmm')
+    rng = np.random.default_rng(3)
+    for n in (6, 12):
+        Phat = rng.standard_normal((40, n))
+        A, c0 = bmm._constraint_matrices(Phat)
+        w0 = float(A.shape[0])
+        H = A.T @ A + w0 * np.outer(c0, c0)
+        L = float(np.linalg.eigvalsh(H)[-1]) + 1e-12
+        step, gamma = 1.0 / L, 1e-3 * L
+        Q = np.eye(n).ravel() / float(c0 @ np.eye(n).ravel())
+        Y, t = Q.copy(), 1.0
+        for _ in range(200):
+            Z = (Y - step * (H @ Y - w0 * c0)).reshape(n, n)
+            lam, E = np.linalg.eigh((Z + Z.T) / 2)
+            Qn = ((E * np.maximum(lam - step * gamma, 0.0)) @ E.T).ravel()
+            t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
+            Y = Qn + ((t - 1) / t_next) * (Qn - Q)
+            Q, t = Qn, t_next
+        got = bmm.metric_projection_Q(Phat, iterations=200, tol=0.0)
+        np.testing.assert_allclose(got, Q.reshape(n, n), rtol=1e-9, atol=1e-12)
+        assert np.linalg.eigvalsh(got).min() > -1e-9       # PSD
+
+
+def test_rigid_camera_step_equals_the_per_frame_form():
+    """The rigid factorisation's camera step and residual on its one shape S0 (3, P) (two
+    BLAS products) against the per-frame form over the shape repeated in every frame."""
+    from nrsfm_ros.core.nrsfm import factorization as fz
+    rng = np.random.default_rng(5)
+    F, P = 12, 300
+    S0 = rng.normal(size=(3, P))
+    Wc = rng.normal(size=(2 * F, P))
+    V = (rng.uniform(size=(F, P)) > 0.3).astype(float)
+    R2, s = fz._procrustes_cameras(Wc, V, S0)
+    R2n, sn = _procrustes_cameras(Wc, V, np.broadcast_to(S0, (F, 3, P)))
+    np.testing.assert_allclose(R2, R2n, atol=1e-12)
+    np.testing.assert_allclose(s, sn, rtol=1e-12)
+    assert fz._residual(Wc, V, R2, s, S0) == pytest.approx(
+        _residual(Wc, V, R2n, sn, np.broadcast_to(S0, (F, 3, P))), rel=1e-12)

@@ -227,3 +227,62 @@ def test_state_fits_equal_the_array_form():
     np.testing.assert_allclose(got.scale, np.abs(s), rtol=1e-10)
     np.testing.assert_allclose(got.R2[1], R, atol=1e-8)        # the state that made the image
     assert abs(got.scale[1] - 2.0) < 1e-8 and got.residual_px[1] < 1e-6 < got.residual_px[0]
+
+
+def test_bundle_kernels_equal_the_array_form():
+    """fit_rigid_pinhole's residuals, soft-L1 normal equations, Schur rows and point gradient
+    against the NumPy expressions they replaced, on observations with hidden entries."""
+    from nrsfm_ros.core.nrsfm._pinhole_kernels import (bundle_normal_equations,
+                                                       bundle_point_gradient, bundle_residuals,
+                                                       bundle_schur_rows)
+    rng = np.random.default_rng(7)
+    F, P, focal, s2 = 5, 40, 300.0, 4.0
+    c = np.array([160.0, 120.0])
+    R = Rotation.random(F, random_state=8).as_matrix()
+    T = np.array([0.0, 0.0, 3.0]) + rng.normal(0, 0.1, (F, 3))
+    X = rng.normal(0, 0.3, (P, 3))
+    fi, pi = np.nonzero(rng.uniform(size=(F, P)) > 0.2)
+    uv = rng.uniform(0, 300, (fi.size, 2))
+    # residuals
+    RX = np.einsum('nij,nj->ni', R[fi], X[pi])
+    Y = RX + T[fi]
+    r = focal * Y[:, :2] / Y[:, 2:] + c - uv
+    got = bundle_residuals(fi, pi, uv, R, T, X, focal, c)
+    for a, b in zip(got, (r, Y, RX)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-12)
+    # normal equations
+    z = Y[:, 2]
+    Jy = np.zeros((fi.size, 2, 3))
+    Jy[:, 0, 0] = Jy[:, 1, 1] = focal / z
+    Jy[:, :, 2] = -focal * Y[:, :2] / (z * z)[:, None]
+    Jc = np.concatenate([np.cross(RX[:, None, :], Jy), Jy], axis=2)
+    Jx = Jy @ R[fi]
+    w = 1.0 / np.sqrt(1.0 + (r * r).sum(1) / s2)
+    wJc, wJx = Jc * w[:, None, None], Jx * w[:, None, None]
+    A = np.zeros((F, 6, 6))
+    B = np.zeros((P, 3, 3))
+    gc, gx = np.zeros((F, 6)), np.zeros((P, 3))
+    np.add.at(A, fi, np.einsum('nki,nkj->nij', wJc, Jc))
+    np.add.at(B, pi, np.einsum('nki,nkj->nij', wJx, Jx))
+    np.add.at(gc, fi, np.einsum('nki,nk->ni', wJc, r))
+    np.add.at(gx, pi, np.einsum('nki,nk->ni', wJx, r))
+    C = np.einsum('nki,nkj->nij', wJc, Jx)
+    E = np.full((F, 6, P, 3), np.nan)
+    E[:] = 0.0
+    got = bundle_normal_equations(fi, pi, r, Y, RX, R, focal, s2, E)
+    for a, b in zip(got, (A, B, gc, gx, C)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-9 * np.abs(b).max())
+    Ewant = np.zeros((P, F, 6, 3))
+    Ewant[pi, fi] = C
+    np.testing.assert_allclose(E, Ewant.transpose(1, 2, 0, 3), rtol=1e-10,
+                               atol=1e-9 * np.abs(C).max())
+    # the Schur rows E B^-1 and the points' gradient with the poses' step
+    Binv = np.linalg.inv(B + np.eye(3))
+    want = np.einsum('fipk,pkj->fipj', E, Binv).reshape(6 * F, 3 * P)
+    np.testing.assert_allclose(bundle_schur_rows(E, Binv), want, rtol=1e-12,
+                               atol=1e-12 * np.abs(want).max())
+    dc = rng.normal(size=(F, 6))
+    want = gx.copy()
+    np.add.at(want, pi, np.einsum('nij,ni->nj', C, dc[fi]))
+    np.testing.assert_allclose(bundle_point_gradient(fi, pi, C, dc, gx), want, rtol=1e-12,
+                               atol=1e-12 * np.abs(want).max())

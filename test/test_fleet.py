@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -458,20 +459,70 @@ def test_ray_bad_setup_one_error_line(bags, tmp_path, capsys, monkeypatch, case,
     assert not (out / 'good0').exists()                   # nothing processed
 
 
-def test_the_fork_servers_warm_up_loads_every_numba_kernel():
+WARM_CHECK = r"""
+import json, os, sys
+import numpy as np
+if os.environ.get('WARM') == '1':
+    import nrsfm_ros.warm  # noqa: F401 -- the import warms
+from numba.core.registry import CPUDispatcher
+from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
+
+
+def signatures():
+    return {f'{n}.{k}': {str(s) for s in v.signatures}
+            for n, m in list(sys.modules.items()) if n.startswith('nrsfm_ros')
+            for k, v in vars(m).items() if isinstance(v, CPUDispatcher)}
+
+
+def rot_y(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+before = signatures()
+rng = np.random.default_rng(0)
+focal, principal, F, P = 500.0, np.array([320.0, 240.0]), 20, 300
+methods = []
+for relief in (0.4, 0.0):       # a curved surface (bmm) and a flat one (planar)
+    X = np.c_[rng.uniform(-0.5, 0.5, (P, 2)), rng.uniform(-relief / 2, relief / 2, P)]
+    s = StreamNRSfM(mode='batch', batch_frames=F, projection='perspective')
+    s.set_intrinsics(focal, principal)
+    for f, a in enumerate(np.radians(np.linspace(-20, 20, F))):
+        Y = X @ rot_y(a).T + [0.05, -0.03, 2.0]
+        uv = focal * Y[:, :2] / Y[:, 2:] + principal + rng.normal(0, 0.2, (P, 2))
+        s.push(np.arange(P), uv, np.ones(P))
+    methods.append(s.last_method)
+after = signatures()
+print(json.dumps({'methods': methods, 'new': sorted({
+    k.rsplit('.', 1)[1] for k in after if after[k] - before.get(k, set())})}))
+"""
+
+
+def test_the_warm_up_loads_every_kernel_a_batch_solve_uses():
     """nrsfm_ros.warm (preloaded by the fleet's fork server, so forked workers do not each
     load the kernels on their first bag: bench_fleet 4 bags, --jobs 1 6.5 -> 4.8 s, --jobs 2
-    4.3 -> 2.7 s) compiles / loads every numba kernel of the package for the dtypes the
-    solvers pass."""
-    import nrsfm_ros.warm  # noqa: F401 -- the import warms
-    from nrsfm_ros.core.nrsfm import _admm, _planar_kernels
+    4.3 -> 2.7 s; imported in a thread by the reconstructor at start) loads every numba kernel
+    of a perspective batch solve (bmm and planar) with the argument types the solvers pass:
+    in a fresh process, the solves after it add no specialisation; without it they do."""
+    import subprocess
     from nrsfm_ros.fleet import FORKSERVER_PRELOAD
-    import numpy as np
-
-    from nrsfm_ros.core.nrsfm.bmm import ADMM_DTYPE
-    admm = np.dtype(ADMM_DTYPE).name
-    for kernel, dtype in ((_admm.data_step, admm), (_admm.dual_step, admm),
-                          (_planar_kernels.final_passes, 'float64')):
-        assert kernel.signatures, kernel
-        assert any(dtype in str(sig[0]) for sig in kernel.signatures), kernel.signatures
+    out = {}
+    for warm in ('1', '0'):
+        env = dict(os.environ, WARM=warm)
+        run = subprocess.run([sys.executable, '-c', WARM_CHECK], env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        out[warm] = json.loads(run.stdout.strip().splitlines()[-1])
+    assert out['1']['methods'] == ['bmm', 'planar'] == out['0']['methods']
+    assert out['1']['new'] == []
+    for kernel in ('data_step', 'fista_psd_trace', 'bundle_normal_equations',
+                   'bundle_residuals', 'frame_error_table', 'pose_normal_equations'):
+        assert kernel in out['0']['new'], out['0']['new']
     assert 'nrsfm_ros.warm' in FORKSERVER_PRELOAD
+
+
+def test_the_reconstructor_warms_the_kernels_in_a_thread_at_start():
+    from nrsfm_ros.processing import _WARMING, ReconstructorProcessor
+    from nrsfm_ros.io.msgtypes import RosbagsFactory
+    ReconstructorProcessor(RosbagsFactory())
+    assert _WARMING.is_set() or 'nrsfm_ros.warm' in sys.modules
