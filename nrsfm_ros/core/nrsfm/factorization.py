@@ -294,14 +294,18 @@ def _rigid(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
     A = metric_upgrade(M_hat, S_hat)
     R2, scale = scaled_orthonormal((M_hat @ A).reshape(F, 2, 3))
     Wf = W.reshape(F, 2, P)
-    # refine shape, cameras and translations jointly (exact for noise-free data)
+    # refine shape, cameras and translations jointly (exact for noise-free data); the steps
+    # read the tracks only as the weighted centred tracks v_fp (w_fp - t_f), and the
+    # translations' sums over the points are matrix products
+    WV = Wf * V[:, None, :]
+    WV_sum, V_sum = WV.sum(axis=2), V.sum(axis=1)
     S0 = None
     for _ in range(4):
-        Wc = (Wf - t[:, :, None]).reshape(2 * F, P)
-        S0 = _solve_rigid_shape(Wc, V, R2, scale, prior=S0)
-        R2, scale = _procrustes_cameras(Wc, V, S0)
-        pred = ((R2 * scale[:, None, None]).reshape(2 * F, 3) @ S0).reshape(F, 2, P)
-        t = ((Wf - pred) * V[:, None, :]).sum(axis=2) / V.sum(axis=1)[:, None]
+        WVc = (WV - t[:, :, None] * V[:, None, :]).reshape(2 * F, P)
+        S0 = _rigid_shape_step(WVc, V, R2, scale, prior=S0)
+        R2, scale = _rigid_camera_step(WVc, V, S0)
+        pred_sum = np.einsum('fki,if->fk', R2 * scale[:, None, None], S0 @ V.T)
+        t = (WV_sum - pred_sum) / V_sum[:, None]
     Wc = (Wf - t[:, :, None]).reshape(2 * F, P)
     R = complete_rotations(R2)
     S = np.ascontiguousarray((R.reshape(3 * F, 3) @ S0).reshape(F, 3, P).transpose(0, 2, 1))
@@ -322,13 +326,21 @@ def _solve_rigid_shape(Wc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.
     point's depth there when the spread is below ~sqrt(prior_weight) rad (0.6 degrees) and is
     negligible otherwise; the prior is a fixed point on exact data.  Without one, a 1e-9 ridge
     keeps tracks seen in too few frames near the centroid instead of arbitrary."""
+    F, P = V.shape
+    return _rigid_shape_step((Wc.reshape(F, 2, P) * V[:, None, :]).reshape(2 * F, P), V, R2,
+                             scale, prior, prior_weight)
+
+
+def _rigid_shape_step(WVc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.ndarray,
+                      prior: np.ndarray | None = None, prior_weight: float = 1e-4
+                      ) -> np.ndarray:
+    """``_solve_rigid_shape`` from the weighted centred tracks WVc (2F, P) = v_fp w_fp."""
     sR = R2 * scale[:, None, None]  # F x 2 x 3
     F, P = V.shape
     G = np.einsum('fki,fkj->fij', sR, sR)
     # the two sums over frames as matrix products (BLAS; ~10x the einsums at 10k tracks)
     A = (V.T @ G.reshape(F, 9)).reshape(P, 3, 3)
-    Wv = Wc.reshape(F, 2, P) * V[:, None, :]
-    b = (sR.transpose(2, 0, 1).reshape(3, 2 * F) @ Wv.reshape(2 * F, P)).T
+    b = (sR.transpose(2, 0, 1).reshape(3, 2 * F) @ WVc).T
     if prior is None:
         A = A + 1e-9 * float(np.trace(G.mean(axis=0))) * np.eye(3)
     else:
@@ -346,7 +358,14 @@ def _procrustes_cameras(Wc: np.ndarray, V: np.ndarray, S0: np.ndarray
     decomposition; exact on clean data).  The frames' normal equations are two BLAS products
     over the points (per-frame batched products of an (F, 3, P) copy were ~10x slower)."""
     F, P = V.shape
-    WSt = ((Wc.reshape(F, 2, P) * V[:, None, :]).reshape(2 * F, P) @ S0.T).reshape(F, 2, 3)
+    return _rigid_camera_step((Wc.reshape(F, 2, P) * V[:, None, :]).reshape(2 * F, P), V, S0)
+
+
+def _rigid_camera_step(WVc: np.ndarray, V: np.ndarray, S0: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """``_procrustes_cameras`` from the weighted centred tracks WVc (2F, P) = v_fp w_fp."""
+    F, P = V.shape
+    WSt = (WVc @ S0.T).reshape(F, 2, 3)
     SSt = (V @ (S0[:, None, :] * S0[None, :, :]).reshape(9, P).T).reshape(F, 3, 3)
     # a relative ridge: a (nearly) planar shape leaves M's normal component at 0, not arbitrary
     SSt = SSt + (1e-12 * np.trace(SSt, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(3)
