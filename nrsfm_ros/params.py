@@ -180,6 +180,11 @@ class TrackerParams(Params):
                                    'itself, seeded by the prediction, replaces the residual flow '
                                    'where its local 1 - ZNCC is lower by this much (lost tracks '
                                    'found again on foreshortened views; 0: off)')
+    recapture_finest_scale: int = rule(
+        _MFOF.recapture_finest_scale, _TRK['recapture_finest_scale'],
+        "mfof: DIS's finest pyramid level of the recapture pass (-1: the preset's own below "
+        '640 px on the long side of the tracked image, one level coarser per doubling from '
+        'there: 640x480 tracks at ~1.25x the frame rate, the same track error)')
     chain_check_px: float = rule(_MFOF.chain_check_px, _TRK['chain_check_px'],
                                  'mfof: a track is reported not visible where its position '
                                  'and its previous one moved by a frame-to-frame flow differ '

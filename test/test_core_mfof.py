@@ -546,3 +546,36 @@ def test_lk_refinement_lowers_the_track_error_under_60_deg_camera_motion():
     np.testing.assert_array_equal(v0, v4)
     assert np.median(e4) < 0.7 * np.median(e0), (np.median(e4), np.median(e0))
     assert np.percentile(e4, 90) < 0.85 * np.percentile(e0, 90)
+
+
+def test_dis_finest_scale_is_the_presets_below_640_px_and_coarser_per_doubling():
+    from nrsfm_ros.core.tracking.mfof import dis_finest_scale
+    assert [dis_finest_scale(-1, 1, s) for s in ((240, 320), (479, 639), (480, 640),
+                                                 (640, 480), (960, 1280), (1080, 1920))] == \
+        [1, 1, 2, 2, 3, 3]
+    assert dis_finest_scale(0, 1, (480, 640)) == 0          # an explicit level wins
+    assert dis_finest_scale(-1, 2, (480, 640)) == 3         # the fast presets' own is 2
+    with pytest.raises(ValueError, match='recapture_finest_scale'):
+        MFOFConfig(recapture_finest_scale=-2).validate()
+
+
+def test_auto_recapture_scale_at_640x480_keeps_the_track_error():
+    """At 640x480 the recapture pass runs DIS one level coarser (auto, ~1.25x the frame rate);
+    the data step keeps the preset's level: the tracks' error against the ground truth stays
+    that of the recapture pass at the preset's own level 1, and at 320x240 nothing changes."""
+    from nrsfm_ros.core.metrics import track_error_px
+    seq = generate(SynthConfig(surface='face', width=640, height=480, frames=8,
+                               camera_motion_deg=30.0))
+    errs = {}
+    for level in (-1, 1):
+        tr = MFOFTracker(MFOFConfig(recapture_finest_scale=level))
+        uv = [tr.step(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)).uv.T for im in seq.images]
+        assert tr._rec.getFinestScale() == (2 if level < 0 else 1)
+        assert tr._fwd.getFinestScale() == 1
+        common, ia, ib = np.intersect1d(tr.ids, seq.track_ids, return_indices=True)
+        assert common.size > 0.8 * seq.track_ids.size
+        errs[level] = track_error_px(np.concatenate(uv)[:, ia], seq.W[:, ib], seq.V[:, ib])
+    assert errs[-1] < 0.3 and errs[-1] < 1.15 * errs[1], errs
+    small = MFOFTracker()
+    small.step(cv2.resize(cv2.cvtColor(seq.images[0], cv2.COLOR_RGB2GRAY), (320, 240)))
+    assert small._rec.getFinestScale() == 1

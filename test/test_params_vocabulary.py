@@ -140,10 +140,10 @@ def compare(cls, base, name, choices, make) -> list[str]:
 
 
 TRACKER_FIELDS = {
-    'mfof': ['preset', 'stride', 'mask', 'min_std', 'rank', 'window', 'refine_every',
-             'subspace_weight', 'spatial_sigma', 'backward_preset', 'fb_threshold',
-             'ncc_threshold', 'recapture_margin', 'outlier_px', 'reselect_fraction',
-             'collapse_fraction', 'reselect_patience'],
+    'mfof': ['preset', 'recapture_finest_scale', 'stride', 'mask', 'min_std', 'rank',
+             'window', 'refine_every', 'subspace_weight', 'spatial_sigma', 'backward_preset',
+             'fb_threshold', 'ncc_threshold', 'recapture_margin', 'outlier_px',
+             'reselect_fraction', 'collapse_fraction', 'reselect_patience'],
     'reference': ['preset', 'stride', 'mask', 'min_std', 'occlusion_threshold'],
 }
 

@@ -123,6 +123,9 @@ def _lk_pool() -> ThreadPoolExecutor:
 @dataclass(frozen=True)
 class MFOFConfig:
     preset: str = 'medium'          # OpenCV DIS preset of the data step
+    recapture_finest_scale: int = -1  # DIS's finest pyramid level of the recapture pass;
+    #                                 -1: the preset's own below 640 px on the long side, one
+    #                                 level coarser per doubling from there
     rank: int = 8                   # learned trajectory-basis images (plus 6 polynomial ones)
     window: int = 20                # frames in the sliding refinement window
     refine_every: int = 5           # re-estimate the learned basis every N frames
@@ -175,6 +178,23 @@ class MFOFFrame:
     flow: np.ndarray
     ids: np.ndarray
     reselected: bool = False
+
+
+AUTO_SCALE_SIDE = 640     # px: the long side from which finest_scale -1 computes coarser
+
+
+def dis_finest_scale(finest_scale: int, preset_finest: int, shape: tuple[int, int]) -> int:
+    """DIS's finest pyramid level for an image of ``shape``: ``finest_scale`` where >= 0,
+    else (-1, auto) the preset's ``preset_finest`` plus one level per doubling of the long side
+    from ``AUTO_SCALE_SIDE`` (320x240: the preset's; 640x480: one coarser).  The medium
+    preset's level 1 is a 320x240 image's flow at 160x120 px; at 640x480 its own level 1 cost
+    10.5 ms a call against 2.8 ms at level 2, with the same e3D through the pipeline
+    (BENCHMARKS, issue 17, session 44)."""
+    if finest_scale >= 0:
+        return int(finest_scale)
+    side = max(shape)
+    extra = int(np.floor(np.log2(side / (AUTO_SCALE_SIDE / 2)))) if side >= AUTO_SCALE_SIDE else 0
+    return preset_finest + extra
 
 
 def contrast_normalise(grey: np.ndarray, sigma: float = 4.0, floor: float = 3.0
@@ -299,6 +319,7 @@ class MFOFTracker:
         self._bwd = cv2.DISOpticalFlow_create(PRESETS[self.config.backward_preset])
         # the recapture pass has its own instance: DIS carries state from one call to the next
         self._rec = cv2.DISOpticalFlow_create(PRESETS[self.config.preset])
+        self._preset_finest = self._rec.getFinestScale()
         self._chain_dis = cv2.DISOpticalFlow_create(PRESETS['medium'])
         self.chain_rejected = 0     # tracks the chained check reported not visible, last frame
         self.epoch = -1
@@ -343,6 +364,8 @@ class MFOFTracker:
         h, w = grey.shape
         self.epoch += 1
         self._ref = grey
+        self._rec.setFinestScale(dis_finest_scale(c.recapture_finest_scale,
+                                                  self._preset_finest, (h, w)))
         self._ref_n = contrast_normalise(grey)
         self._ref_f = grey.astype(np.float32)
         self._ref_stats = local_stats(self._ref_f)

@@ -48,6 +48,7 @@ def _fraction(v: Any) -> str | None:
 
 PARAM_RULES: dict[str, Rule] = {
     'preset': _one_of(PRESETS),
+    'recapture_finest_scale': _at_least(-1),
     'backward_preset': _one_of(PRESETS),
     'mask': _one_of(MASKS),
     'stride': _at_least(1),
