@@ -30,7 +30,7 @@ from .core.registration.rays import (MIN_INLIER_FRACTION, MIN_MATCHES, invert,
                                      mirror_along_rays, ray_cost, ray_pose, ray_residuals)
 from .core.sceneflow import scene_flow
 from .core.tracking import MFOFFrame, MFOFTracker, ReferenceFlowTracker
-from .core.tracking.reference_flow import MIN_SIDE, black_out, reference_pixels, roi_region
+from .core.tracking.reference_flow import MIN_SIDE, black_out, check_trackable, roi_region
 from .io import image as img_io
 from .io import pointcloud2 as pc2
 from .io.errors import MessageError
@@ -303,7 +303,7 @@ class TrackerProcessor(Processor):
                                   if self.params.downsample > 1 else ''))
         p = self.params
         try:
-            reference_pixels(grey, p.mask, max(1, p.stride // p.downsample), p.min_std)
+            check_trackable(grey, p.mask, max(1, p.stride // p.downsample), p.min_std)
         except ValueError as err:
             raise MessageError('data', 'untrackable frame', f'skipped: {err}') from err
 

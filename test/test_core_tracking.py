@@ -120,3 +120,28 @@ def test_texture_mask_leaves_a_noisy_flat_background_out(seq):
     clean, m = texture_mask(grey), texture_mask(noisy)
     assert m[~seen].mean() < 1.5 * clean[~seen].mean() + 0.01     # background stays out
     assert m[seen].mean() > 0.9 * clean[seen].mean()               # the surface stays in
+
+
+def test_check_trackable_agrees_with_reference_pixels(seq):
+    """The tracker node's per-frame check raises exactly where a reference could not be set
+    on the frame, with the same message."""
+    from nrsfm_ros.core.tracking.reference_flow import check_trackable, reference_pixels
+    grey = cv2.cvtColor(seq.images[0], cv2.COLOR_RGB2GRAY)
+    flat = np.full_like(grey, 90)
+    dot = flat.copy()
+    dot[40:44, 50:54] = 200             # a few textured pixels: a handful on the grid
+    for g in (grey, flat, dot, grey[:5, :5]):
+        for mask, stride in (('texture', 2), ('texture', 7), ('full', 3)):
+            try:
+                reference_pixels(g, mask, stride, 4.0)
+                want = None
+            except ValueError as err:
+                want = str(err)
+            try:
+                check_trackable(g, mask, stride, 4.0)
+                got = None
+            except ValueError as err:
+                got = str(err)
+            assert got == want, (g.shape, mask, stride)
+    with pytest.raises(ValueError, match='only 0 trackable pixels'):
+        check_trackable(flat, 'texture', 2, 4.0)
