@@ -219,6 +219,12 @@ def object_poses(clouds: Sequence[Cloud], iterations: int = 8, softness: float =
     return R, t
 
 
+def _centroid(X: np.ndarray) -> np.ndarray:
+    """The mean point of X (P, 3) as one BLAS product (NumPy's mean over the first axis of a
+    (P, 3) array is a strided reduction, 10x slower at 30k points)."""
+    return (np.ones(X.shape[0]) @ X) / X.shape[0]
+
+
 def known_poses(clouds: Sequence[Cloud], rotations: np.ndarray, assume_checked: bool = False
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses of a window of clouds in :func:`object_poses`' convention (``X_f ~ R_f Z + t_f``,
@@ -240,16 +246,22 @@ def known_poses(clouds: Sequence[Cloud], rotations: np.ndarray, assume_checked: 
                                                    for k, (X, i) in enumerate(clouds)]
     R = Q @ Q[0].T
     t = np.zeros((F, 3))
+    whole: dict[int, np.ndarray] = {}       # each cloud's centroid, computed once
+
+    def centroid(f: int) -> np.ndarray:
+        if f not in whole:
+            whole[f] = _centroid(checked[f][0])
+        return whole[f]
     for f in range(1, F):
         (Xa, ia), (Xb, ib) = checked[f - 1], checked[f]
         if ia.shape == ib.shape and np.array_equal(ia, ib):   # one track set: every point
-            ma, mb = Xa.mean(0), Xb.mean(0)
+            ma, mb = centroid(f - 1), centroid(f)
         else:
             _, pa, pb = _shared(ia, ib)
             if not pa.size:
                 t[f] = t[f - 1]
                 continue
-            ma, mb = Xa[pa].mean(0), Xb[pb].mean(0)
+            ma, mb = _centroid(Xa[pa]), _centroid(Xb[pb])
         # R_f^T (m_b - t_f) = R_{f-1}^T (m_a - t_{f-1}): the shared centroid stands still
         t[f] = mb - R[f] @ R[f - 1].T @ (ma - t[f - 1])
     return R, t
