@@ -1360,8 +1360,7 @@ class SceneFlowProcessor(Processor):
         a, b = pts[sel], pts[sel] + v[sel] * self.params.marker_scale
         seg = np.empty((2 * a.shape[0], 3))
         seg[0::2], seg[1::2] = a, b
-        points = [f.make('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=float(p[2]))
-                  for p in seg]
+        points = f.points(seg)
         marker = f.make('visualization_msgs/msg/Marker', header=f.header(stamp, frame),
                         ns='scene_flow', id=0, type=MARKER_LINE_LIST, action=MARKER_ADD,
                         pose=f.make('geometry_msgs/msg/Pose',

@@ -198,3 +198,18 @@ def test_bad_columns_name_the_column(cols, text):
         pc2.to_msg(cols, RclpyFactory(), 0, 'cam')
     with pytest.raises(ValueError, match='height: 4 does not divide'):
         pc2.to_msg({'x': np.zeros(6, np.float32)}, RosbagsFactory(), 0, 'cam', height=4)
+
+
+def test_factories_build_point_lists_as_make_does():
+    """MsgFactory.points (the scene-flow markers' segments) equals one make per row, for both
+    backends."""
+    from nrsfm_ros.io.msgtypes import MsgFactory, RclpyFactory, RosbagsFactory
+    xyz = np.array([[0.5, -1.25, 3.0], [1e-3, 2.0, -0.0]], np.float32)
+    for fac in (RosbagsFactory(), RclpyFactory()):
+        got = fac.points(xyz)
+        want = MsgFactory.points(fac, xyz)      # the generic form: make per row
+        assert len(got) == 2 and type(got[0]) is type(want[0])
+        for g, w in zip(got, want):
+            assert (g.x, g.y, g.z) == (w.x, w.y, w.z)
+        assert (got[0].x, got[0].y, got[0].z) == (0.5, -1.25, 3.0)
+    assert RosbagsFactory().points(np.zeros((0, 3))) == []
