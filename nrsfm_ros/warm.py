@@ -46,6 +46,8 @@ def warm() -> None:
     S = np.ones((F, P, 3))
     _pinhole_kernels.frame_error_table(S, np.ones(F), np.zeros((F, 2)), np.ones((2 * F, P)),
                                        np.ones((F, P)), 1.0, 0.0, 0.0, 0.5, 2.0)
+    _pinhole_kernels.weak_image_error(S, np.ones(F), np.zeros((F, 2)), np.ones((2 * F, P)),
+                                      np.ones((F, P)), 0.0, 0.0, np.ones((F, P)), 1.0)
     m, w = np.zeros((F, P, 2)), np.ones((F, P))
     _pinhole_kernels.pose_normal_equations(S, m, w, eye, T)
     _pinhole_kernels.reprojection_loss(S, m, w, 1.0)

@@ -3,6 +3,7 @@ written as NumPy array expressions (the implementations they replaced)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from nrsfm_ros.core.nrsfm.perspective import RATIO_RANGE, frame_errors, reflect_frames
@@ -286,3 +287,27 @@ def test_bundle_kernels_equal_the_array_form():
     np.add.at(want, pi, np.einsum('nij,ni->nj', C, dc[fi]))
     np.testing.assert_allclose(bundle_point_gradient(fi, pi, C, dc, gx), want, rtol=1e-12,
                                atol=1e-12 * np.abs(want).max())
+
+
+def test_perspective_error_equals_the_array_form():
+    """perspective_error's one-pass kernel against the array form it replaced, with a depth
+    ratio per point and a scalar one."""
+    from nrsfm_ros.core.nrsfm.perspective import perspective_error
+    rng = np.random.default_rng(9)
+    F, P = 6, 200
+    res = NRSfMResult(S=rng.normal(size=(F, P, 3)) * 50, R=np.tile(np.eye(3), (F, 1, 1)),
+                      scale=rng.uniform(0.8, 1.2, F), t=rng.uniform(100, 200, (F, 2)),
+                      method='rigid', rank=1, residual_px=0.0, iterations=1, converged=True,
+                      seconds=0.0)
+    W = rng.uniform(50, 250, (2 * F, P))
+    V = rng.uniform(0, 1, (F, P))
+    c = np.array([160.0, 120.0])
+    for ratio in (rng.uniform(0.9, 1.1, (F, P)), 1.0, 1.05):
+        want = 0.0
+        d2 = np.zeros((F, P))
+        for k in (0, 1):
+            e = c[k] + (res.scale[:, None] * res.S[:, :, k] + res.t[:, k, None] - c[k]) / ratio \
+                - W[k::2]
+            d2 += e * e
+        want = (np.sqrt(d2) * V).sum() / V.sum()
+        assert perspective_error(res, W, V, 500.0, c, ratio) == pytest.approx(want, rel=1e-12)

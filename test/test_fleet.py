@@ -516,7 +516,8 @@ def test_the_warm_up_loads_every_kernel_a_batch_solve_uses():
     assert out['1']['methods'] == ['bmm', 'planar'] == out['0']['methods']
     assert out['1']['new'] == []
     for kernel in ('data_step', 'fista_psd_trace', 'bundle_normal_equations',
-                   'bundle_residuals', 'frame_error_table', 'pose_normal_equations'):
+                   'bundle_residuals', 'frame_error_table', 'pose_normal_equations',
+                   'weak_image_error'):
         assert kernel in out['0']['new'], out['0']['new']
     assert 'nrsfm_ros.warm' in FORKSERVER_PRELOAD
 

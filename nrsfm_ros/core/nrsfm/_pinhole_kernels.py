@@ -415,3 +415,26 @@ def bundle_point_gradient(fi: np.ndarray, pi: np.ndarray, C: np.ndarray, dc: np.
                 acc += C[k, i, j] * dc[f, i]
             out[p, j] += acc
     return out
+
+
+@njit(cache=True, nogil=True)
+def weak_image_error(S: np.ndarray, scale: np.ndarray, t: np.ndarray, W: np.ndarray,
+                     V: np.ndarray, cx: float, cy: float, ratio: np.ndarray,
+                     ratio_scalar: float) -> float:
+    """``perspective.perspective_error`` in one pass: the V-weighted mean pixel distance
+    between W (2F, P) and the shapes S (F, P, 3) imaged weak-perspective (``scale``, ``t``)
+    and divided about (cx, cy) by the depth ratio (``ratio`` (F, P), or ``ratio_scalar``
+    where ``ratio`` is empty)."""
+    F, P = V.shape
+    per_point = ratio.size > 0
+    num = 0.0
+    den = 0.0
+    for f in range(F):
+        s, tx, ty = scale[f], t[f, 0], t[f, 1]
+        for p in range(P):
+            r = ratio[f, p] if per_point else ratio_scalar
+            ex = cx + (s * S[f, p, 0] + tx - cx) / r - W[2 * f, p]
+            ey = cy + (s * S[f, p, 1] + ty - cy) / r - W[2 * f + 1, p]
+            num += np.sqrt(ex * ex + ey * ey) * V[f, p]
+            den += V[f, p]
+    return num / max(den, 1e-12)

@@ -50,23 +50,28 @@ def extend(sub: NRSfMResult, idx: np.ndarray, W: np.ndarray, V: np.ndarray) -> N
     R2 = sub.R[:, :2] * sub.scale[:, None, None]                 # (F, 2, 3)
     M = np.einsum('fk,fij->fikj', C, R2).reshape(F, 2, 3 * K)    # w_f = M_f vec(B) + t_f
     rest = np.setdiff1d(np.arange(P), idx)
-    Wr = W.reshape(F, 2, P)[:, :, rest] - sub.t[:, :, None]      # (F, 2, Pr)
-    Vr = V[:, rest]
+    # every track's normal equations and coefficients (the subset's are overwritten with its
+    # own shapes after): no gather of the other tracks' (F, 2, Pr) measurements nor scatter of
+    # their shapes, half of a 640x480 batch's extension
+    Wc = W.reshape(F, 2, P) - sub.t[:, :, None]                  # (F, 2, P)
     # the per-track normal equations as matrix products (an einsum over these axes runs
     # unblocked: 1.4 s of a 640x480 batch's four extensions)
     n = 3 * K
     G = np.einsum('fai,faj->fij', M, M)                          # (F, 3K, 3K)
-    N = (Vr.T @ G.reshape(F, n * n)).reshape(-1, n, n)
-    N += RIDGE * max(float(np.trace(N.mean(0))) / n, 1e-300) * np.eye(n)
-    rhs = ((Vr[:, None, :] * Wr).reshape(2 * F, -1).T @ M.reshape(2 * F, n))   # (Pr, 3K)
-    b = np.linalg.solve(N, rhs[:, :, None])[:, :, 0].reshape(-1, K, 3)   # (Pr, K, 3)
-    obj = (C @ b.reshape(-1, K, 3).transpose(1, 0, 2).reshape(K, -1)).reshape(F, -1, 3)
-    S_rest = obj @ sub.R.transpose(0, 2, 1)                       # camera frame (F, Pr, 3)
+    N = (V.T @ G.reshape(F, n * n)).reshape(-1, n, n)
+    # the ridge from the other tracks' mean diagonal (as when only they were solved)
+    mean_trace = float(V[:, rest].mean(axis=1) @ np.trace(G, axis1=1, axis2=2))
+    N += RIDGE * max(mean_trace / n, 1e-300) * np.eye(n)
+    rhs = ((V[:, None, :] * Wc).reshape(2 * F, -1).T @ M.reshape(2 * F, n))    # (P, 3K)
+    b = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]                  # (P, 3K)
+    if K == 1:      # NumPy's matmul over an inner dimension of 1 is not BLAS (~10x slower)
+        obj = np.multiply.outer(C[:, 0], b).reshape(F, P, 3)
+    else:
+        obj = (C @ b.reshape(P, K, 3).transpose(1, 0, 2).reshape(K, -1)).reshape(F, P, 3)
+    S = obj @ sub.R.transpose(0, 2, 1)                            # camera frame (F, P, 3)
     if sub.method == 'planar':
-        S_rest = _planar_rest(sub, S_rest, Wr, Vr)
-    S = np.empty((F, P, 3))
+        S[:, rest] = _planar_rest(sub, S[:, rest], Wc[:, :, rest], V[:, rest])
     S[:, idx] = sub.S
-    S[:, rest] = S_rest
     return replace(sub, S=S)
 
 

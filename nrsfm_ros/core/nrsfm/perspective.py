@@ -63,13 +63,19 @@ def perspective_error(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: flo
     divides its weak-perspective projection by the depth ratio ``ratio`` (F, P) about the
     principal point: the pixel error of a solve of measurements corrected by ``ratio`` (1: the
     weak-perspective camera)."""
+    from ..arrays import contiguous64
+    from ._pinhole_kernels import weak_image_error
     c = np.asarray(principal, dtype=np.float64)
-    d2 = np.zeros(V.shape)
-    for k in (0, 1):        # per image axis, (F, P) each: no (F, 2, P) temporaries
-        weak = res.scale[:, None] * res.S[:, :, k] + res.t[:, k, None]
-        e = c[k] + (weak - c[k]) / ratio - W[k::2]
-        d2 += e * e
-    return float((np.sqrt(d2) * V).sum() / max(V.sum(), 1e-12))
+    # one pass over the points (numba): the array form's ten passes over (F, P) arrays were
+    # 37 ms a call at 80 frames x 30k tracks
+    per_point = np.ndim(ratio) > 0
+    r = np.zeros((0, 0))
+    if per_point:
+        r = np.array(np.broadcast_to(ratio, V.shape), dtype=np.float64, order='C') \
+            if np.shape(ratio) != V.shape else contiguous64(ratio)[0]
+    S, scale, t, W, V = contiguous64(res.S, res.scale, res.t, W, V)
+    return float(weak_image_error(S, scale, t, W, V, float(c[0]), float(c[1]), r,
+                                  float(ratio) if not per_point else 1.0))
 
 
 def reflect_frames(res: NRSfMResult, signs: np.ndarray) -> NRSfMResult:
