@@ -164,16 +164,22 @@ class GridSampler:
         """(K, H*W) -> (K, h*w)."""
         return self._resize(X, self.shape, self.small, cv2.INTER_AREA)
 
-    def up(self, X: np.ndarray) -> np.ndarray:
-        """(K, h*w) -> (K, H*W) (bilinear; not re-orthonormalised: fits use least squares)."""
-        return self._resize(X, self.small, self.shape, cv2.INTER_LINEAR)
+    def up(self, X: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """(K, h*w) -> (K, H*W) (bilinear; not re-orthonormalised: fits use least squares),
+        written to ``out`` (K, H*W) float32 where given."""
+        return self._resize(X, self.small, self.shape, cv2.INTER_LINEAR, out)
 
     def _resize(self, X: np.ndarray, src: tuple[int, int], dst: tuple[int, int],
-                interpolation: int) -> np.ndarray:
-        """Every row of X, an image of shape ``src`` (h, w), resized to ``dst``."""
+                interpolation: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Every row of X, an image of shape ``src`` (h, w), resized to ``dst`` (into ``out``
+        where given)."""
         if self.step == 1:
-            return X
-        out = np.empty((X.shape[0], dst[0] * dst[1]), np.float32)
+            if out is None:
+                return X
+            out[...] = X
+            return out
+        if out is None:
+            out = np.empty((X.shape[0], dst[0] * dst[1]), np.float32)
         for k in range(X.shape[0]):
             out[k] = cv2.resize(X[k].reshape(src), (dst[1], dst[0]),
                                 interpolation=interpolation).ravel()
