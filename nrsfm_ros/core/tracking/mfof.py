@@ -180,16 +180,16 @@ class MFOFFrame:
     reselected: bool = False
 
 
-AUTO_SCALE_SIDE = 640     # px: the long side from which finest_scale -1 computes coarser
+AUTO_SCALE_SIDE = 640     # px: the long side from which the auto level (-1) is coarser
 
 
 def dis_finest_scale(finest_scale: int, preset_finest: int, shape: tuple[int, int]) -> int:
     """DIS's finest pyramid level for an image of ``shape``: ``finest_scale`` where >= 0,
     else (-1, auto) the preset's ``preset_finest`` plus one level per doubling of the long side
     from ``AUTO_SCALE_SIDE`` (320x240: the preset's; 640x480: one coarser).  The medium
-    preset's level 1 is a 320x240 image's flow at 160x120 px; at 640x480 its own level 1 cost
-    10.5 ms a call against 2.8 ms at level 2, with the same e3D through the pipeline
-    (BENCHMARKS, issue 17, session 44)."""
+    preset's level 1 is a 320x240 image's flow at 160x120 px; at 640x480 it cost 10.5 ms a call
+    against 2.8 ms at level 2: the recapture pass there at level 2 leaves the tracks' error
+    and the pipeline's e3D as they were (BENCHMARKS, issue 17, session 44)."""
     if finest_scale >= 0:
         return int(finest_scale)
     side = max(shape)
