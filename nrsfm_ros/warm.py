@@ -12,12 +12,13 @@ from __future__ import annotations
 import numpy as np
 
 from .core.nrsfm import _admm, _pinhole_kernels, _planar_kernels
+from .core.registration import _rays_kernel
 
 def warm() -> None:
     """One call of each kernel on tiny arrays, with the argument types the solvers pass: the
     ADMM's in ``ADMM_DTYPE``, the batch solve's (the metric projection, the rigid pinhole
-    fits of the depth sign, the frames' perspective errors) and the planar pinhole
-    refinement's in float64."""
+    fits of the depth sign, the frames' perspective errors), the planar pinhole refinement's
+    and the registrar's ray pose in float64."""
     from .core.nrsfm.bmm import ADMM_DTYPE, metric_projection_Q
     from .core.nrsfm.rigid_pinhole import fit_rigid_pinhole
     F, P = 2, 4
@@ -51,6 +52,8 @@ def warm() -> None:
     m, w = np.zeros((F, P, 2)), np.ones((F, P))
     _pinhole_kernels.pose_normal_equations(S, m, w, eye, T)
     _pinhole_kernels.reprojection_loss(S, m, w, 1.0)
+    pts = np.ones((P, 3))
+    _rays_kernel.ray_normal_equations(np.eye(4), pts, pts.copy(), pts / np.sqrt(3.0), 0.9, 1.0)
     rest, h = np.zeros((P, 2)), np.zeros((F, P))
     _pinhole_kernels.cauchy_weights(rest, h, eye, T, m, w, 1.0)
     _pinhole_kernels.height_terms(S, eye, T, rest, w)

@@ -567,3 +567,33 @@ def test_global_start_turns_a_near_symmetric_shape_onto_its_feature():
             gs.symmetry_sweep = sweep
     assert max(errs) < 1.5, errs
     assert max(unswept) > 5.0, unswept
+
+
+def test_ray_normal_equations_equal_the_array_form():
+    """ray_pose's per-point kernel against the NumPy expressions it replaced."""
+    from nrsfm_ros.core.registration._rays_kernel import ray_normal_equations
+    from nrsfm_ros.core.registration.base import apply
+    rng = np.random.default_rng(11)
+    n, c, thr = 300, 0.9, 0.05
+    x = np.c_[rng.uniform(-0.5, 0.5, (n, 2)), 2 + 0.2 * rng.normal(size=n)]
+    d = x / np.linalg.norm(x, axis=1, keepdims=True)
+    p = x + rng.normal(0, 0.03, (n, 3))
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec([0.02, -0.03, 0.01]).as_matrix()
+    G[:3, 3] = [0.01, 0.0, -0.02]
+    y = apply(G, p)
+    v = y - x
+    e = v - c * d * (d * v).sum(1, keepdims=True)
+    r = np.linalg.norm(e, axis=1)
+    w = 1.0 / (1.0 + (r / thr) ** 2)
+    A = np.zeros((n, 3, 6))
+    A[:, 0, 3] = A[:, 1, 4] = A[:, 2, 5] = 1.0
+    A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = y[:, 2], -y[:, 1], y[:, 0]
+    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -y[:, 2], y[:, 1], -y[:, 0]
+    J = A - c * d[:, :, None] * np.einsum('ni,nij->nj', d, A)[:, None, :]
+    Js = (J * np.sqrt(w)[:, None, None]).reshape(-1, 6)
+    H, g, rk = ray_normal_equations(G, p, x, d, c, thr)
+    np.testing.assert_allclose(rk, r, rtol=1e-12)
+    np.testing.assert_allclose(H, Js.T @ Js, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(g, Js.T @ (e * np.sqrt(w)[:, None]).ravel(), rtol=1e-10,
+                               atol=1e-14)

@@ -24,6 +24,7 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._rays_kernel import ray_normal_equations
 from .base import RegistrationResult, apply, check_param, make_result
 
 MIN_MATCHES = 6          # fewest matched points a pose is solved from
@@ -31,14 +32,6 @@ MIN_MATCHES = 6          # fewest matched points a pose is solved from
 # the same points (track ids from an unrelated source): the pipeline's reconstructions keep
 # >= 0.16 (flag 60 deg amplitude 2), shuffled ids of the same clouds <= 0.01
 MIN_INLIER_FRACTION = 0.05
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) cross-product matrices of the rows of v."""
-    S = np.zeros(v.shape[:1] + (3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return S
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
@@ -125,23 +118,12 @@ def ray_pose(source: np.ndarray, target: np.ndarray, threshold: float,
     c = 1.0 - depth_weight
     G = np.eye(4) if init is None else invert(np.asarray(init, np.float64))
     it, prev = 0, np.inf
-    A = np.zeros((p.shape[0], 3, 6))
-    A[:, 0, 3] = A[:, 1, 4] = A[:, 2, 5] = 1.0
+    x, p, d = (np.ascontiguousarray(a) for a in (x, p, d))
     for it in range(1, int(max_iterations) + 1):
-        y = apply(G, p)
-        v = y - x
-        e = v - c * d * (d * v).sum(1, keepdims=True)            # (n, 3) weighted error W v
-        r = np.linalg.norm(e, axis=1)
+        # Gauss-Newton on (rotation vector, translation), left-multiplied update of G, with
+        # Cauchy IRLS weights: J = W [-skew(y) | I] (one pass over the points, numba)
+        H, g, r = ray_normal_equations(G, p, x, d, c, float(threshold))
         cost = ray_cost(r, threshold)
-        w = 1.0 / (1.0 + (r / threshold) ** 2)                  # Cauchy IRLS weights
-        # Gauss-Newton on (rotation vector, translation), left-multiplied update of G:
-        # J = W [-skew(y) | I], the normal equations as one BLAS product of the stacked rows
-        A[:, :, :3] = -_skew(y)
-        J = A - c * d[:, :, None] * np.einsum('ni,nij->nj', d, A)[:, None, :]
-        sw = np.sqrt(w)[:, None, None]
-        Js = (J * sw).reshape(-1, 6)
-        H = Js.T @ Js
-        g = Js.T @ (e * sw[:, :, 0]).ravel()
         try:
             step = -np.linalg.solve(H + (1e-9 * np.trace(H) + 1e-300) * np.eye(6), g)
         except np.linalg.LinAlgError:
