@@ -223,7 +223,8 @@ def test_rigid_camera_step_equals_the_per_frame_form():
     S0 = rng.normal(size=(3, P))
     Wc = rng.normal(size=(2 * F, P))
     V = (rng.uniform(size=(F, P)) > 0.3).astype(float)
-    R2, s = fz._procrustes_cameras(Wc, V, S0)
+    R2, s = fz._rigid_camera_step((Wc.reshape(F, 2, P) * V[:, None, :]).reshape(2 * F, P), V,
+                                  S0)
     R2n, sn = _procrustes_cameras(Wc, V, np.broadcast_to(S0, (F, 3, P)))
     np.testing.assert_allclose(R2, R2n, atol=1e-12)
     np.testing.assert_allclose(s, sn, rtol=1e-12)

@@ -351,19 +351,13 @@ def _rigid_shape_step(WVc: np.ndarray, V: np.ndarray, R2: np.ndarray, scale: np.
     return np.linalg.solve(A, b[..., None])[..., 0].T
 
 
-def _procrustes_cameras(Wc: np.ndarray, V: np.ndarray, S0: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame, s_f R_f for w_fp ~= s R S_p (one rigid shape ``S0`` (3, P)): weighted least
-    squares for the 2x3 motion block M_f, then its nearest scaled-orthonormal matrix (polar
-    decomposition; exact on clean data).  The frames' normal equations are two BLAS products
-    over the points (per-frame batched products of an (F, 3, P) copy were ~10x slower)."""
-    F, P = V.shape
-    return _rigid_camera_step((Wc.reshape(F, 2, P) * V[:, None, :]).reshape(2 * F, P), V, S0)
-
-
 def _rigid_camera_step(WVc: np.ndarray, V: np.ndarray, S0: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """``_procrustes_cameras`` from the weighted centred tracks WVc (2F, P) = v_fp w_fp."""
+    """Per frame, s_f R_f for w_fp ~= s R S_p (one rigid shape ``S0`` (3, P)) from the weighted
+    centred tracks WVc (2F, P) = v_fp w_fp: weighted least squares for the 2x3 motion block
+    M_f, then its nearest scaled-orthonormal matrix (polar decomposition; exact on clean data).
+    The frames' normal equations are two BLAS products over the points (per-frame batched
+    products of an (F, 3, P) copy were ~10x slower)."""
     F, P = V.shape
     WSt = (WVc @ S0.T).reshape(F, 2, 3)
     SSt = (V @ (S0[:, None, :] * S0[None, :, :]).reshape(9, P).T).reshape(F, 3, 3)
