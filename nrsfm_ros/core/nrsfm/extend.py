@@ -24,6 +24,7 @@ from .result import NRSfMResult
 BASIS_ENERGY = 1e-4   # energy of S# the temporal basis may leave out
 MAX_BASIS = 8         # components of the temporal basis at most
 RIDGE = 1e-6          # relative ridge of the per-track normal equations
+BLOCK = 4096          # tracks a block of the extension
 
 
 def spread_subset(P: int, max_tracks: int) -> np.ndarray:
@@ -51,26 +52,31 @@ def extend(sub: NRSfMResult, idx: np.ndarray, W: np.ndarray, V: np.ndarray) -> N
     M = np.einsum('fk,fij->fikj', C, R2).reshape(F, 2, 3 * K)    # w_f = M_f vec(B) + t_f
     rest = np.setdiff1d(np.arange(P), idx)
     # every track's normal equations and coefficients (the subset's are overwritten with its
-    # own shapes after): no gather of the other tracks' (F, 2, Pr) measurements nor scatter of
-    # their shapes, half of a 640x480 batch's extension
-    Wc = W.reshape(F, 2, P) - sub.t[:, :, None]                  # (F, 2, P)
-    # the per-track normal equations as matrix products (an einsum over these axes runs
-    # unblocked: 1.4 s of a 640x480 batch's four extensions)
+    # own shapes after), as matrix products (an einsum over these axes runs unblocked: 1.4 s
+    # of a 640x480 batch's four extensions), a block of tracks at a time: the temporaries stay
+    # a few MB that the allocator reuses, where whole-batch (F, 2, P) ones were fresh memory at
+    # every call (0.35 s of page faults in a 640x480 batch's 0.4 s extension on this machine)
     n = 3 * K
-    G = np.einsum('fai,faj->fij', M, M)                          # (F, 3K, 3K)
-    N = (V.T @ G.reshape(F, n * n)).reshape(-1, n, n)
+    G = np.einsum('fai,faj->fij', M, M).reshape(F, n * n)        # (F, 3K x 3K)
     # the ridge from the other tracks' mean diagonal (as when only they were solved)
-    mean_trace = float(V[:, rest].mean(axis=1) @ np.trace(G, axis1=1, axis2=2))
-    N += RIDGE * max(mean_trace / n, 1e-300) * np.eye(n)
-    rhs = ((V[:, None, :] * Wc).reshape(2 * F, -1).T @ M.reshape(2 * F, n))    # (P, 3K)
-    b = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]                  # (P, 3K)
-    if K == 1:      # NumPy's matmul over an inner dimension of 1 is not BLAS (~10x slower)
-        obj = np.multiply.outer(C[:, 0], b).reshape(F, P, 3)
-    else:
-        obj = (C @ b.reshape(P, K, 3).transpose(1, 0, 2).reshape(K, -1)).reshape(F, P, 3)
-    S = obj @ sub.R.transpose(0, 2, 1)                            # camera frame (F, P, 3)
+    V_rest = (V.sum(axis=1) - V[:, idx].sum(axis=1)) / max(rest.size, 1)
+    mean_trace = float(V_rest @ np.trace(G.reshape(F, n, n), axis1=1, axis2=2))
+    ridge = RIDGE * max(mean_trace / n, 1e-300) * np.eye(n)
+    Mt = M.reshape(2 * F, n)
+    # S_fp = R_f sum_k C_fk b_kp = b_p @ A_f with A_f[(k, j), i] = C_fk R_f[i, j]
+    A = (C[:, :, None, None] * sub.R.transpose(0, 2, 1)[:, None]).reshape(F, n, 3)
+    S = np.empty((F, P, 3))
+    W3 = W.reshape(F, 2, P)
+    for p0 in range(0, P, BLOCK):
+        sl = slice(p0, min(p0 + BLOCK, P))
+        Vb = V[:, sl]
+        N = (Vb.T @ G).reshape(-1, n, n) + ridge
+        rhs = (Vb[:, None, :] * (W3[:, :, sl] - sub.t[:, :, None])).reshape(2 * F, -1).T @ Mt
+        b = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]           # (Pb, 3K)
+        np.matmul(b, A, out=S[:, sl])
     if sub.method == 'planar':
-        S[:, rest] = _planar_rest(sub, S[:, rest], Wc[:, :, rest], V[:, rest])
+        Wr = W3[:, :, rest] - sub.t[:, :, None]
+        S[:, rest] = _planar_rest(sub, S[:, rest], Wr, V[:, rest])
     S[:, idx] = sub.S
     return replace(sub, S=S)
 

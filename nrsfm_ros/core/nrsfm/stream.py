@@ -560,7 +560,9 @@ class StreamNRSfM:
         keep = (V >= 0.5).sum(axis=0) >= min(MIN_OBSERVED, F)
         if keep.sum() < 4:                      # nearly nothing visible: use what is there
             keep = V.sum(axis=0) > 0
-        return all_ids[keep], W[:, keep], V[:, keep]
+        # np.compress keeps (W, V) C-ordered (W[:, keep] is not: every numba kernel and
+        # perspective_error call of a batch then copied the whole tracks)
+        return all_ids[keep], np.compress(keep, W, axis=1), np.compress(keep, V, axis=1)
 
     def _batch_tracks(self, frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``_tracks`` less those seen in fewer than ``min_seen`` of the frames that report
@@ -577,7 +579,7 @@ class StreamNRSfM:
             return ids, W, V
         self.tracks_left_out = int((~often).sum())
         self._left_out = ids[~often]            # dspr: left out of its later frames too
-        return ids[often], W[:, often], V[:, often]
+        return ids[often], np.compress(often, W, axis=1), np.compress(often, V, axis=1)
 
     # ------------------------------------------------------------------ solves
     def _solve_window(self) -> list[StreamShape]:
