@@ -54,6 +54,7 @@ def warm() -> None:
     _pinhole_kernels.reprojection_loss(S, m, w, 1.0)
     pts = np.ones((P, 3))
     _rays_kernel.ray_normal_equations(np.eye(4), pts, pts.copy(), pts / np.sqrt(3.0), 0.9, 1.0)
+    _rays_kernel.ray_residual_lengths(np.eye(4), pts, pts.copy(), pts / np.sqrt(3.0), 0.1)
     rest, h = np.zeros((P, 2)), np.zeros((F, P))
     _pinhole_kernels.cauchy_weights(rest, h, eye, T, m, w, 1.0)
     _pinhole_kernels.height_terms(S, eye, T, rest, w)

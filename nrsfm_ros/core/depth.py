@@ -32,16 +32,25 @@ def depth_image(uv: np.ndarray, z: np.ndarray, size: tuple[int, int],
         span = np.array([u.max() - u.min(), v.max() - v.min()]) + 1.0
         spacing = float(np.sqrt(span[0] * span[1] / ok.sum()))
     r = int(np.clip(np.ceil(spacing), 1, max(h, w)))
-    splat = np.full(h * w, np.inf)
-    np.minimum.at(splat, yi * w + xi, zk)
-    hit = np.isfinite(splat)
-    mask = hit.reshape(h, w).astype(np.uint8)
-    val = np.where(hit, splat, 0.0).reshape(h, w).astype(np.float32)
+    # everything on the tracks' bounding box grown by 2r + 1 (the image clipped), the same
+    # output: a pixel nearer the box's edge than r lies over r + 1 from every track, so its
+    # closing is 0 there whatever the erosion saw beyond the box (about half a 640x480 frame)
+    m = 2 * r + 1
+    x0, x1 = max(int(xi.min()) - m, 0), min(int(xi.max()) + m + 1, w)
+    y0, y1 = max(int(yi.min()) - m, 0), min(int(yi.max()) + m + 1, h)
+    bw = x1 - x0
+    # float32 splats: rounding is monotonic, so the nearest depth is the same as in float64
+    splat = np.full((y1 - y0) * bw, np.inf, np.float32)
+    np.minimum.at(splat, (yi - y0) * bw + (xi - x0), zk.astype(np.float32))
+    splat = splat.reshape(y1 - y0, bw)
+    hit = splat < np.inf
+    mask = hit.view(np.uint8)
+    splat[~hit] = 0.0
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    surface = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel).astype(bool)
+    surface = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel).view(bool)
     k = kernel.astype(np.float32)
-    num = cv2.filter2D(val, -1, k, borderType=cv2.BORDER_CONSTANT)
-    den = cv2.filter2D(mask.astype(np.float32), -1, k, borderType=cv2.BORDER_CONSTANT)
+    num = cv2.filter2D(splat, -1, k, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.filter2D(mask, cv2.CV_32F, k, borderType=cv2.BORDER_CONSTANT)
     fill = surface & (den > 0)
-    out[fill] = num[fill] / den[fill]
+    out[y0:y1, x0:x1][fill] = num[fill] / den[fill]
     return out

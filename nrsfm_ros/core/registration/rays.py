@@ -24,7 +24,7 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._rays_kernel import ray_normal_equations
+from ._rays_kernel import ray_normal_equations, ray_residual_lengths
 from .base import RegistrationResult, apply, check_param, make_result
 
 MIN_MATCHES = 6          # fewest matched points a pose is solved from
@@ -71,11 +71,10 @@ def check_rays(X: np.ndarray) -> None:
 
 def ray_residuals(G: np.ndarray, target: np.ndarray, source: np.ndarray, d: np.ndarray,
                   depth_weight: float) -> np.ndarray:
-    """r (N,) of the target mapped into the source camera by G (see the module)."""
-    e = apply(G, target) - source
-    along = np.einsum('ij,ij->i', e, d)
-    lateral2 = np.maximum(np.einsum('ij,ij->i', e, e) - along ** 2, 0.0)
-    return np.sqrt(lateral2 + (depth_weight * along) ** 2)
+    """r (N,) of the target mapped into the source camera by G (see the module); one numba
+    pass (the array form's five passes were ~0.5 ms at 30k points, three calls a cloud)."""
+    G, target, source, d = (np.ascontiguousarray(a, np.float64) for a in (G, target, source, d))
+    return ray_residual_lengths(G, target, source, d, float(depth_weight))
 
 
 def ray_cost(r: np.ndarray, threshold: float) -> float:
