@@ -13,12 +13,13 @@ import numpy as np
 
 from .core.nrsfm import _admm, _pinhole_kernels, _planar_kernels
 from .core.registration import _rays_kernel
+from .core.sceneflow import _flow_kernels
 
 def warm() -> None:
     """One call of each kernel on tiny arrays, with the argument types the solvers pass: the
     ADMM's in ``ADMM_DTYPE``, the batch solve's (the metric projection, the rigid pinhole
     fits of the depth sign, the frames' perspective errors), the planar pinhole refinement's
-    and the registrar's ray pose in float64."""
+    the registrar's ray pose and the scene flow's window fit in float64."""
     from .core.nrsfm.bmm import ADMM_DTYPE, metric_projection_Q
     from .core.nrsfm.rigid_pinhole import fit_rigid_pinhole
     F, P = 2, 4
@@ -59,6 +60,10 @@ def warm() -> None:
     _pinhole_kernels.cauchy_weights(rest, h, eye, T, m, w, 1.0)
     _pinhole_kernels.height_terms(S, eye, T, rest, w)
     _pinhole_kernels.rest_coordinates(S, eye, T, h, w, rest)
+    _flow_kernels.add_object_displacement(np.zeros((P, 3)), pts, np.zeros(0, np.intp),
+                                          np.zeros(3), np.eye(3), 1.0)
+    nb = np.zeros((P, 2), np.intp)
+    _flow_kernels.neighbour_means(np.ones(P), nb)
 
 
 warm()

@@ -46,6 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from ..arrays import duplicates, sorted_unique
+from ._flow_kernels import add_object_displacement, neighbour_means
 Cloud = tuple[np.ndarray, np.ndarray]   # (N, 3) points, (N,) unique track ids
 
 
@@ -280,8 +281,12 @@ def pair_flow(prev: Cloud, cur: Cloud, T_a_b: np.ndarray, dt: float) -> SceneFlo
     """``(T_a_b X_b - X_a) / dt`` on the track ids the two (checked) clouds share."""
     a_X, a_ids = prev
     b_X, b_ids = cur
-    common, ip, ic = _shared(a_ids, b_ids)
-    a, b = a_X[ip], b_X[ic]
+    if a_ids.shape == b_ids.shape and np.array_equal(a_ids, b_ids) and \
+            bool((a_ids[1:] > a_ids[:-1]).all()):
+        common, a, b = a_ids, a_X, b_X      # one ascending track set: no gathers
+    else:
+        common, ip, ic = _shared(a_ids, b_ids)
+        a, b = a_X[ip], b_X[ic]
     moved = b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
     return SceneFlow(points=b, velocity=(moved - a) / dt, ids=common.astype(np.uint32),
                      T_prev_cur=T_a_b)
@@ -357,13 +362,16 @@ def shrink_factor(displacement: np.ndarray, sigma2: float | None,
     nb = neighbour_index(points, neighbours) if index is None else np.asarray(index)
     if nb.ndim != 2 or nb.shape[0] != d2.size:
         raise ValueError(f'index: expected ({d2.size}, k) neighbour indices, got {nb.shape}')
-    power = d2[nb].mean(axis=1)
+    if nb.size and not (0 <= nb.min() and nb.max() < d2.size):
+        raise ValueError(f'index: expected neighbour indices in 0..{d2.size - 1}')
+    nb = np.ascontiguousarray(nb, np.intp)
+    power = neighbour_means(d2, nb)
     noise = 6.0 * sigma2
     if gain is not None:
         gain = np.asarray(gain, np.float64)
         if gain.shape != d2.shape or not np.all(gain >= 0):
             raise ValueError(f'gain: expected {d2.size} values >= 0, got shape {gain.shape}')
-        noise = noise * gain[nb].mean(axis=1)
+        noise = noise * neighbour_means(gain, nb)
     with np.errstate(divide='ignore'):
         return np.where(power > 0, np.clip(1.0 - noise / power, 0.0, 1.0), 0.0)
 
@@ -484,21 +492,28 @@ def centred_flow(clouds: Sequence[Cloud], R: np.ndarray, t: np.ndarray, k: int,
                      [i for f, (_, i) in enumerate(clouds) if f not in (k - 1, k)])
     if not common.size:
         return sf, gain
-    Y = np.empty((w, common.size, 3))
-    for f, (X, i) in enumerate(clouds):
-        if i.shape == common.shape and np.array_equal(i, common):   # already in that order
-            Y[f] = (X - t[f]) @ R[f]
-            continue
-        order = np.argsort(i, kind='stable')
-        Y[f] = (X[order[np.searchsorted(i, common, sorter=order)]] - t[f]) @ R[f]
     s = (tau - tau[k - 1]) / max(float(np.ptp(tau)), 1e-300)   # conditioning
     degree = 2 if w >= 4 else 1
     A = np.vander(s, degree + 1, increasing=True)
     g = A[k] - A[k - 1]                                   # p(t_k) - p(t_{k-1}) = g . coef
     h = np.linalg.lstsq(A, np.eye(w), rcond=None)[0].T @ g   # displacement = h . Y (w,)
-    d_obj = np.tensordot(h, Y, axes=(0, 0))                  # (n, 3) object axes
+    # d_obj = sum_f h_f Y_f, the clouds' rows of the common ids weighted in one pass each
+    d_obj = np.zeros((common.size, 3))                       # (n, 3) object axes
+    none = np.zeros(0, np.intp)
+    for f, (X, i) in enumerate(clouds):
+        if i.shape == common.shape and np.array_equal(i, common):   # already in that order
+            rows = none
+        else:
+            order = np.argsort(i, kind='stable')
+            rows = order[np.searchsorted(i, common, sorter=order)]
+        add_object_displacement(d_obj, np.ascontiguousarray(X, np.float64), rows,
+                                np.asarray(t[f], np.float64), np.asarray(R[f], np.float64),
+                                float(h[f]))
     velocity = sf.velocity.copy()
-    where = np.searchsorted(sf.ids.astype(np.int64), common)   # sf.ids sorted (intersect1d)
+    if sf.ids.shape == common.shape and np.array_equal(sf.ids, common):
+        where: slice | np.ndarray = slice(None)
+    else:
+        where = np.searchsorted(sf.ids.astype(np.int64), common)   # sf.ids sorted
     velocity[where] = d_obj @ R[k - 1].T / dt
     gain[where] = float(h @ h) / 2.0
     return replace(sf, velocity=velocity), gain
