@@ -82,11 +82,11 @@ def final_passes(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray,
                     b[i] -= ga[f] * C[f, i]
                     for j in range(K):
                         M[i, j] += gg[f] * C[f, i] * C[f, j]
-            B = np.linalg.solve(M, b)
+            _solve_in_place(M, b)
             for f in range(F):
                 hf = 0.0
                 for i in range(K):
-                    hf += C[f, i] * B[i]
+                    hf += C[f, i] * b[i]
                 h[p, f] = hf
             # the rest coordinates: a 2 x 2 system
             a11 = a22 = a12 = b1 = b2 = 0.0
@@ -114,3 +114,31 @@ def final_passes(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray,
         rest[p, 0] = x
         rest[p, 1] = y
     return rest, h
+
+
+@njit(cache=True, nogil=True)
+def _solve_in_place(M: np.ndarray, b: np.ndarray) -> None:
+    """b <- M^-1 b for a small K x K system (M overwritten): Gaussian elimination with
+    partial pivoting, LAPACK's gesv without its calls' allocations (numba's np.linalg.solve
+    copies both and calls LAPACK: ~2 us a point and pass, most of the final passes at K = 2).
+    A singular M gives non-finite b, as its zero pivot."""
+    K = b.shape[0]
+    for c in range(K):
+        piv = c
+        for r in range(c + 1, K):
+            if abs(M[r, c]) > abs(M[piv, c]):
+                piv = r
+        if piv != c:
+            for j in range(K):
+                M[c, j], M[piv, j] = M[piv, j], M[c, j]
+            b[c], b[piv] = b[piv], b[c]
+        for r in range(c + 1, K):
+            f = M[r, c] / M[c, c]
+            for j in range(c, K):
+                M[r, j] -= f * M[c, j]
+            b[r] -= f * b[c]
+    for c in range(K - 1, -1, -1):
+        acc = b[c]
+        for j in range(c + 1, K):
+            acc -= M[c, j] * b[j]
+        b[c] = acc / M[c, c]
