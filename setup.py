@@ -19,7 +19,8 @@ setup(
     package_data={package_name: ['models/hdmnet.onnx', 'models/hdmnet.json']},
     install_requires=['setuptools', 'numpy', 'scipy', 'opencv-python-headless', 'rosbags',
                       'PyYAML', 'onnxruntime',   # onnxruntime: HDM-Net inference
-                      'numba'],                  # numba: the core's per-point kernels
+                      'numba',                   # numba: the core's per-point kernels
+                      'threadpoolctl'],          # BLAS at one thread in core/threads.py
     extras_require={'plot': ['matplotlib', 'pillow'],   # evaluate --plot / --render (gif)
                     'view': ['foxglove-sdk>=0.30.3'],    # nrsfm-ros view
                     'ray': ['ray==2.58.0'],               # nrsfm-ros process --ray

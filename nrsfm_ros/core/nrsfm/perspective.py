@@ -31,6 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..threads import map_threads
 from .result import NRSfMResult
 
 RATIO_RANGE = (0.5, 1.5)      # Z / Zbar kept in this range (a wild depth never explodes u)
@@ -170,7 +171,7 @@ def perspective_solve(solve: Callable[[np.ndarray, np.ndarray], NRSfMResult], W:
         res = _aligned(finish(), depths(start))
         err = perspective_error(res, W, V, focal, principal, ratio)
     else:
-        err, res = min((step(start) for start in starts), key=lambda e: e[0])
+        err, res = min(map_threads(step, starts), key=lambda e: e[0])
     for _ in range(iterations - 1):
         nxt_err, nxt = step(res)
         if not nxt_err < err:

@@ -45,7 +45,7 @@ frame still pending (a stream shorter than the window is solved whole), so no fr
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -53,6 +53,7 @@ import numpy as np
 
 from ..arrays import duplicates, sorted_unique
 from ..metrics import rotation_range_deg
+from ..threads import map_threads
 from .dspr import DynamicShapePrior, necker_partner, object_shapes, shape_distance
 from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
@@ -670,7 +671,7 @@ class StreamNRSfM:
         after = np.arange(res.S.shape[0])
         starts += [reflect_frames(res, np.where(after > c, -1.0, 1.0))
                    for c in plane_crossings(res.R)]
-        refined = _map_threads(lambda s: refine_planar_pinhole(s, W, V, *intrinsics), starts)
+        refined = map_threads(lambda s: refine_planar_pinhole(s, W, V, *intrinsics), starts)
         done = [r for r in refined if not any(r is s for s in starts)]
         if not done:
             return res
@@ -1093,17 +1094,6 @@ def _flat_result(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
     return NRSfMResult(S=S, R=np.broadcast_to(np.eye(3), (F, 3, 3)).copy(), scale=np.ones(F),
                        t=t, method='flat', rank=0, residual_px=float('nan'), iterations=0,
                        converged=False, seconds=0.0)
-
-
-def _map_threads(fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
-    """``[fn(x) for x in items]``, two at a time in threads where there are several (the
-    planar refinement's starts: its numba kernels and NumPy's large array passes release the
-    GIL)."""
-    if len(items) < 2:
-        return [fn(x) for x in items]
-    from concurrent.futures import ThreadPoolExecutor
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        return list(pool.map(fn, items))
 
 
 def _lookup(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

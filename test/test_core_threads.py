@@ -1,0 +1,45 @@
+"""core/threads.py: independent solves two at a time."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from nrsfm_ros.core.threads import map_threads
+
+
+def test_map_threads_keeps_order_and_uses_two_threads():
+    seen: set[int] = set()
+    barrier = threading.Barrier(2, timeout=10)
+
+    def fn(x: int) -> int:
+        seen.add(threading.get_ident())
+        if x < 2:
+            barrier.wait()        # both first calls at once: two threads, or this times out
+        return x * x
+    assert map_threads(fn, list(range(5))) == [0, 1, 4, 9, 16]
+    assert len(seen) == 2
+    assert map_threads(fn, [3]) == [9]            # one item: this thread
+
+
+def test_map_threads_raises_what_a_call_raises():
+    def fn(x: int) -> int:
+        if x == 2:
+            raise ValueError('bad item 2')
+        return x
+    with pytest.raises(ValueError, match='bad item 2'):
+        map_threads(fn, [0, 1, 2, 3])
+
+
+def test_blas_is_one_thread_inside_and_restored_after():
+    threadpoolctl = pytest.importorskip('threadpoolctl')
+    np.ones((4, 4)) @ np.ones((4, 4))              # numpy's BLAS loaded
+    before = [i['num_threads'] for i in threadpoolctl.threadpool_info()
+              if i['user_api'] == 'blas']
+    inside = map_threads(lambda _: [i['num_threads'] for i in threadpoolctl.threadpool_info()
+                                    if i['user_api'] == 'blas'], [0, 1])
+    after = [i['num_threads'] for i in threadpoolctl.threadpool_info()
+             if i['user_api'] == 'blas']
+    assert before and all(n == 1 for call in inside for n in call)
+    assert after == before
