@@ -166,6 +166,22 @@ def test_rounds_on_a_spread_subset_give_every_track_nearly_the_same_fit():
         refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=2)
 
 
+def test_a_shared_pinhole_image_gives_the_same_refinement():
+    """Several starts of one batch share one ``pinhole_image`` (rays, weights, the subset's
+    copies): the same result as each building its own; one of other tracks is refused."""
+    W, V, _ = bending_sheet(side=32)
+    step = _step(W, V)
+    image = planar_pinhole.pinhole_image(W, V, FOCAL, PRINCIPAL, max_tracks=256)
+    own = refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=256)
+    shared = refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, max_tracks=256, image=image)
+    assert own is not step
+    np.testing.assert_array_equal(shared.S, own.S)
+    np.testing.assert_array_equal(shared.R, own.R)
+    other = planar_pinhole.pinhole_image(W[:, :100], V[:, :100], FOCAL, PRINCIPAL)
+    with pytest.raises(ValueError, match='image'):
+        refine_planar_pinhole(step, W, V, FOCAL, PRINCIPAL, image=other)
+
+
 @pytest.mark.parametrize('size, frames, bound', [((128, 96), 40, 0.07), ((96, 72), 20, 0.13)])
 def test_stream_refines_from_both_depth_sign_starts_and_keeps_the_better_fit(size, frames,
                                                                            bound):

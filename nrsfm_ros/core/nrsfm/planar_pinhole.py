@@ -29,7 +29,7 @@ projects them exactly (up to the stream's one global scale).
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -174,16 +174,57 @@ def _fit(rays: np.ndarray, w0: np.ndarray, R: np.ndarray, T: np.ndarray, rest: n
     return R, T, Cf, Bp, rest
 
 
+@dataclass(frozen=True)
+class PinholeImage:
+    """The tracks' pinhole image as every refinement start reads it (:func:`pinhole_image`):
+    visible weights ``w0`` (F, P), normalised image points ``m`` (F, P, 2), their rays
+    (F, P, 3), the same per point for the final passes (P, F, 3) and (P, F), and the rounds'
+    spread subset ``idx`` with its rays and weights.  Built once for the 2-4 starts of a batch
+    (each built its own: ~64 MB of fresh memory a start at 80 frames x 10k tracks)."""
+    w0: np.ndarray
+    m: np.ndarray
+    rays: np.ndarray
+    rays_points: np.ndarray
+    w0_points: np.ndarray
+    idx: np.ndarray
+    rays_sub: np.ndarray
+    w0_sub: np.ndarray
+
+
+def pinhole_image(W: np.ndarray, V: np.ndarray, focal: float, principal: np.ndarray,
+                  max_tracks: int = MAX_TRACKS) -> PinholeImage:
+    """The :class:`PinholeImage` of tracks W (2F, P), V (F, P) for refinements with these
+    intrinsics and ``max_tracks``."""
+    focal, principal = check_intrinsics(focal, principal)
+    if max_tracks < 4:
+        raise ValueError(f'max_tracks: expected >= 4, got {max_tracks}')
+    F, P = V.shape
+    w0 = np.ascontiguousarray(V >= 0.5, np.float64)
+    m = np.ascontiguousarray((W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal)
+    rays = np.concatenate([m, np.ones((F, P, 1))], 2)
+    idx = spread_subset(P, max_tracks)
+    full = idx.size == P
+    return PinholeImage(
+        w0=w0, m=m, rays=rays,
+        rays_points=rays if full else np.ascontiguousarray(rays.transpose(1, 0, 2)),
+        w0_points=w0 if full else np.ascontiguousarray(w0.T), idx=idx,
+        rays_sub=rays if full else np.ascontiguousarray(rays[:, idx]),
+        w0_sub=w0 if full else np.ascontiguousarray(w0[:, idx]))
+
+
 def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
                           principal: np.ndarray, rounds: int = ROUNDS,
                           rank: int = HEIGHT_RANK, robust_px: float = ROBUST_PX,
-                          max_tracks: int = MAX_TRACKS) -> NRSfMResult:
+                          max_tracks: int = MAX_TRACKS, image: PinholeImage | None = None
+                          ) -> NRSfMResult:
     """``res`` (a weak-perspective or ``perspective_solve`` result of W (2F, P), V (F, P) in
     image units) refined under the pinhole camera (focal px, principal point); see the module
     docstring.  ``res`` itself when the refinement does not explain the image better.
     ``max_tracks``: the rounds run on at most this many tracks spread over the set; the poses
     and the heights' frame coefficients found there then give every track its rest
-    coordinates and height basis (per-point closed forms, ``FINAL_PASSES`` times)."""
+    coordinates and height basis (per-point closed forms, ``FINAL_PASSES`` times).
+    ``image``: :func:`pinhole_image` of the same tracks, intrinsics and ``max_tracks``, shared
+    by several starts (built here when None)."""
     focal, principal = check_intrinsics(focal, principal)
     if rounds < 1:
         raise ValueError(f'rounds: expected >= 1, got {rounds}')
@@ -198,9 +239,10 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     F, P = V.shape
     if not (np.isfinite(res.S).all() and np.isfinite(res.t).all()) or F < 3:
         return res
-    w0 = np.ascontiguousarray(V >= 0.5, np.float64)
-    m = np.ascontiguousarray((W.reshape(F, 2, P).transpose(0, 2, 1) - principal) / focal)
-    rays = np.concatenate([m, np.ones((F, P, 1))], 2)
+    img = pinhole_image(W, V, focal, principal, max_tracks) if image is None else image
+    if img.w0.shape != (F, P):
+        raise ValueError(f'image: for {img.w0.shape} tracks, the solve has {(F, P)}')
+    w0, m = img.w0, img.m
     X = res.S * res.scale[:, None, None] / focal                           # relative to depth
     X0 = np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
                    X[..., 1] + (res.t[:, None, 1] - principal[1]) / focal,
@@ -211,12 +253,11 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     wr = w0 + 1e-9                    # a point never seen at V >= 0.5 keeps its mean position
     rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
     rank = min(rank, F, P)
-    idx = spread_subset(P, max_tracks)
-    sub = (np.ascontiguousarray(a[:, idx]) for a in (rays, w0))   # (a[:, idx] is strided)
-    R, T, Cf, Bp, rest_sub = _fit(*sub, R, T, rest[idx], h[:, idx], rounds, rank, robust)
+    idx = img.idx
+    R, T, Cf, Bp, rest_sub = _fit(img.rays_sub, img.w0_sub, R, T, rest[idx], h[:, idx], rounds,
+                                  rank, robust)
     if idx.size < P:                  # every track from the subset's poses and C
-        rest, hT = final_passes(np.ascontiguousarray(rays.transpose(1, 0, 2)),
-                                np.ascontiguousarray(w0.T), R, T, np.ascontiguousarray(Cf),
+        rest, hT = final_passes(img.rays_points, img.w0_points, R, T, np.ascontiguousarray(Cf),
                                 rest, np.ascontiguousarray(h.T), robust, FINAL_PASSES, 1e-9)
         h = hT.T
     else:

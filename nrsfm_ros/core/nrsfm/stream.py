@@ -59,7 +59,7 @@ from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
 from .planar import PLANAR_PERSPECTIVE_RATIO
-from .planar_pinhole import refine_planar_pinhole
+from .planar_pinhole import pinhole_image, refine_planar_pinhole
 from .result import NRSfMResult
 from .rigid_pinhole import batch_sign
 from .spva import WEIGHTINGS, ShapePrior
@@ -671,7 +671,9 @@ class StreamNRSfM:
         after = np.arange(res.S.shape[0])
         starts += [reflect_frames(res, np.where(after > c, -1.0, 1.0))
                    for c in plane_crossings(res.R)]
-        refined = map_threads(lambda s: refine_planar_pinhole(s, W, V, *intrinsics), starts)
+        image = pinhole_image(W, V, *intrinsics)      # one for every start
+        refined = map_threads(lambda s: refine_planar_pinhole(s, W, V, *intrinsics,
+                                                              image=image), starts)
         done = [r for r in refined if not any(r is s for s in starts)]
         if not done:
             return res
