@@ -190,6 +190,8 @@ def largest_first(jobs: Sequence[BagJob]) -> list[BagJob]:
 
 
 def _init_worker(threads: int) -> None:
+    from .core.threads import set_workers
+    set_workers(threads)          # the batch solves' candidate threads too
     try:
         import cv2
         cv2.setNumThreads(threads)

@@ -43,3 +43,23 @@ def test_blas_is_one_thread_inside_and_restored_after():
              if i['user_api'] == 'blas']
     assert before and all(n == 1 for call in inside for n in call)
     assert after == before
+
+
+def test_set_workers_one_runs_serially_and_a_fleet_worker_takes_its_threads():
+    import cv2
+
+    from nrsfm_ros.core import threads
+    from nrsfm_ros.fleet import _init_worker
+    saved, cv_threads = threads.WORKERS, cv2.getNumThreads()
+    try:
+        _init_worker(1)                 # a fleet worker with one thread
+        assert threads.WORKERS == 1
+        seen: set[int] = set()
+        assert map_threads(lambda x: seen.add(threading.get_ident()) or x, [1, 2, 3]) == \
+            [1, 2, 3]
+        assert seen == {threading.get_ident()}
+        with pytest.raises(ValueError, match='workers'):
+            threads.set_workers(0)
+    finally:
+        threads.set_workers(saved)
+        cv2.setNumThreads(cv_threads)

@@ -15,13 +15,22 @@ from typing import Any, TypeVar
 
 T = TypeVar('T')
 
-WORKERS = 2     # threads at most: the machines this targets have 2 cores, the stages one each
+WORKERS = 2     # threads at most: the machines this targets have 2 cores (set_workers)
+
+
+def set_workers(n: int) -> None:
+    """At most ``n`` threads for :func:`map_threads` in this process (1: serial), e.g. a
+    fleet worker given one thread while other workers use the other cores."""
+    global WORKERS
+    if n < 1:
+        raise ValueError(f'workers: expected >= 1, got {n}')
+    WORKERS = int(n)
 
 
 def map_threads(fn: Callable[[Any], T], items: Sequence[Any]) -> list[T]:
     """``[fn(x) for x in items]`` in that order, ``WORKERS`` at a time in threads where there
     are several items; an exception of any call is raised here, as the loop would."""
-    if len(items) < 2:
+    if len(items) < 2 or WORKERS < 2:
         return [fn(x) for x in items]
     from concurrent.futures import ThreadPoolExecutor
     with _blas_single_thread(), ThreadPoolExecutor(max_workers=min(WORKERS, len(items))) as pool:
