@@ -513,7 +513,7 @@ def test_a_planar_batch_is_also_refined_from_its_crossings(monkeypatch):
     res = _yawed(25 * np.sin(2 * np.pi * np.arange(60) / 60))   # one crossing, at frame 30
     calls = []
 
-    def fake_refine(start, W, V, focal, principal):
+    def fake_refine(start, W, V, focal, principal, image=None):
         z = start.S[:, :, 2]
         k = len(calls)
         calls.append(np.sign(z[:, 1]))
