@@ -275,6 +275,34 @@ def test_recapture_keeps_tracks_on_a_face_under_60_deg_camera_motion():
     assert err[1:][V[1:]].mean() < 1.2 and kept > 0.78
 
 
+def test_the_recapture_pass_in_its_thread_gives_the_tracks_of_the_serial_tracker(monkeypatch):
+    """The recapture pass runs in a second thread beside the data step (OpenCV's DIS
+    releases the GIL): the same calls as in sequence, so the same tracks to the last bit as a
+    tracker held to one thread (``core.threads.set_workers(1)``: a fleet worker)."""
+    import threading
+
+    from nrsfm_ros.core import threads
+    from nrsfm_ros.core.tracking import mfof
+    seq = generate(SynthConfig(surface='face', frames=12, camera_motion_deg=60.0))
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in seq.images]
+    names = set()
+    flow = mfof.MFOFTracker._recapture_flow
+
+    def recorded(self, *a):
+        names.add(threading.current_thread().name)
+        return flow(self, *a)
+    monkeypatch.setattr(mfof.MFOFTracker, '_recapture_flow', recorded)
+    monkeypatch.setattr(threads, 'WORKERS', threads.WORKERS)     # restored after the test
+    runs = []
+    for n in (2, 1):
+        threads.set_workers(n)
+        tr = MFOFTracker(MFOFConfig(stride=2, mask='texture'))
+        runs.append(np.stack([tr.step(g).uv for g in grey]))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert any(n.startswith('mfof-recapture') for n in names)          # the threaded run
+    assert threading.current_thread().name in names                      # the serial one
+
+
 def test_offset_prediction_keeps_a_strongly_deforming_flag_under_60_deg_camera_motion():
     """A rendered flag at twice the deformation amplitude (30 frames) under a ~74 deg camera
     swing: folds deform faster than the first subspace (polynomial images only, then a rank-8

@@ -84,18 +84,23 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
+from .. import threads
 from ..arrays import duplicates
 from . import _refine_kernel
 from .reference_flow import check_grey, reference_pixels
 from .rules import PARAM_RULES, PRESETS, check_param
 from .subspace import GridSampler, fit_basis, fit_coefficients
 
+
+_T = TypeVar('_T')
 
 LK_MAX_MOVE = 3.0   # px: an affine Lucas-Kanade refinement moving a track further is dropped
 _LK_POOL: tuple[int, ThreadPoolExecutor] | None = None
@@ -321,6 +326,8 @@ class MFOFTracker:
         self._rec = cv2.DISOpticalFlow_create(PRESETS[self.config.preset])
         self._preset_finest = self._rec.getFinestScale()
         self._chain_dis = cv2.DISOpticalFlow_create(PRESETS['medium'])
+        # the recapture pass' thread (_beside), made on first use
+        self._pool: tuple[int, ThreadPoolExecutor] | None = None
         self.chain_rejected = 0     # tracks the chained check reported not visible, last frame
         self.epoch = -1
         self.keep_history = False   # track_sequence: record (d, w) of the first reference
@@ -521,6 +528,12 @@ class MFOFTracker:
         # r (small, locally undistorted), so u(x) = r(x) + pred(x + r(x))
         grey_n = contrast_normalise(grey)
         grey_f = grey.astype(np.float32)
+        # the recapture pass depends only on the frame and the seed: it runs in a second
+        # thread while the data step and its backward check run here (OpenCV's DIS releases
+        # the GIL; each call is the same as in sequence, so the tracks are too), unless this
+        # process is held to one thread (core.threads.set_workers: a fleet worker)
+        recapture = self._beside(self._recapture_flow, grey_n, grey_f, seed) \
+            if c.recapture_margin > 0 and threads.WORKERS > 1 else None
         warped = _warp(grey_n, gx, gy, pred)
         r = self._fwd.calc(self._ref_n, warped, None)
         mx, my = gx + r[..., 0], gy + r[..., 1]
@@ -532,7 +545,8 @@ class MFOFTracker:
             fb_sq = fb[..., 0] ** 2 + fb[..., 1] ** 2
         dis = self.dissimilarity(_warp(grey_f, gx, gy, u))
         if c.recapture_margin > 0:
-            u2, dis2 = self._recapture_flow(grey_n, grey_f, seed)
+            u2, dis2 = recapture.result() if recapture is not None else \
+                self._recapture_flow(grey_n, grey_f, seed)
             u, dis, fb_sq = self._recapture(u2, dis2, u, dis, fb_sq)
         occ, inside = self.occlusion(None, u, fb_sq, dis)
         weight = ((1.0 - occ) * inside).ravel()
@@ -597,6 +611,13 @@ class MFOFTracker:
         share = visible_support(ok.reshape(h, w), self._mask, self.config.support_radius)
         weak = share.ravel() < self.config.support_fraction
         return np.where(weak, 0.0, vis), np.where(weak, 1.0, occ)
+
+    def _beside(self, fn: Callable[..., _T], *args: object) -> Future[_T]:
+        """``fn(*args)`` started in this tracker's second thread (made in the process that
+        uses it: a pool's threads do not survive a fork)."""
+        if self._pool is None or self._pool[0] != os.getpid():
+            self._pool = (os.getpid(), ThreadPoolExecutor(1, 'mfof-recapture'))
+        return self._pool[1].submit(fn, *args)
 
     def _recapture_flow(self, grey_n: np.ndarray, grey_f: np.ndarray, pred: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
