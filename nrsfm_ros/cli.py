@@ -147,15 +147,13 @@ def _parser(verb: str | None = None) -> argparse.ArgumentParser:
                     'of output bags even for one bag.  Put it after the bags or write '
                     '--ray=ADDRESS')
     pr.add_argument('--copy-inputs', action='store_true', help='also copy the input topics')
-    pr.add_argument('--pipelined', action='store_true',
-                    help='one bag: the stages run at once, each in its own thread (or process: '
-                    '--stage-workers), fed in the one-process order (the same output messages; '
-                    'on 2 cores about 0.9x the wall time at 320x240, where the '
-                    "reconstructor's batch solve is the critical path)")
-    pr.add_argument('--stage-workers', choices=('threads', 'processes'), default='threads',
-                    help='with --pipelined: threads (default; nothing pickled, the stages '
-                    'overlap where they release the GIL) or processes (no GIL; each starts '
-                    'and pickles its messages)')
+    pr.add_argument('--stage-workers', choices=('threads', 'processes', 'none'), default=None,
+                    help='one bag: the stages run at once, each in its own thread (the '
+                    'default: nothing pickled, the stages overlap where they release the GIL; '
+                    'on 2 cores 0.79-0.93x the wall time of one stage at a time) or process '
+                    '(no GIL; each starts and pickles its messages), fed in the one-process '
+                    'order (the same output messages); none: one stage at a time.  Several '
+                    'bags run one stage at a time in each worker (--jobs)')
     pr.add_argument('--no-progress', action='store_true')
 
     t = add('topic', 'inspect live topics: list, echo, hz, info')
@@ -571,13 +569,11 @@ def cmd_process(args: argparse.Namespace) -> int:
     if args.ray and Path(args.ray).exists():
         raise CliError(f'--ray {args.ray}: that is a path, not a Ray address; put --ray after '
                        'the bags or write --ray=HOST:PORT')
-    if args.stage_workers != 'threads' and not args.pipelined:
-        raise CliError('--stage-workers: only with --pipelined')
     params = load_params(args.params)
     if len(args.bag) > 1 or args.ray is not None:
-        if args.pipelined:
-            raise CliError('--pipelined: one bag only; several bags (or --ray) already run '
-                           'one worker per bag (--jobs)')
+        if args.stage_workers not in (None, 'none'):
+            raise CliError(f'--stage-workers {args.stage_workers}: one bag only; several bags '
+                           '(or --ray) already run one worker per bag (--jobs)')
         return _process_many(args, stages, params)
     bag = args.bag[0]
     bag_info(bag)               # not a bag: one error line before anything is written
@@ -585,7 +581,8 @@ def cmd_process(args: argparse.Namespace) -> int:
         raise CliError(f'{args.out} exists; choose another --out or delete it')
     report = process_bag(bag, args.out, stages, params,
                          progress=not args.no_progress, copy_inputs=args.copy_inputs,
-                         pipelined=args.stage_workers if args.pipelined else False)
+                         pipelined=False if args.stage_workers == 'none'
+                         else args.stage_workers or 'threads')
     d = report.as_dict()
     if args.report:
         write_report(report, args.report)

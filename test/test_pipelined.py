@@ -50,33 +50,44 @@ def test_pipelined_writes_the_same_messages_as_one_process(bag, tmp_path, worker
     assert par.cpu_s > 0 and par.seconds > 0
 
 
-def test_process_cli_pipelined(bag, tmp_path, capsys):
+def test_process_cli_runs_the_stages_at_once_by_default(bag, tmp_path, capsys, monkeypatch):
+    import nrsfm_ros.pipelined as pl
     from nrsfm_ros.cli import main
+    used = []
+    run = pl.process_bag_pipelined
+
+    def spy(*a, **k):
+        used.append(a[7] if len(a) > 7 else k.get('workers'))
+        return run(*a, **k)
+    monkeypatch.setattr(pl, 'process_bag_pipelined', spy)
     report = tmp_path / 'r.json'
-    assert main(['process', str(bag), '--out', str(tmp_path / 'o'), '--pipelined',
+    assert main(['process', str(bag), '--out', str(tmp_path / 'o'),
                  '--pipeline', 'tracker,reconstructor', '--no-progress', '--report',
                  str(report)]) == 0
     out = capsys.readouterr().out
     assert 'nrsfm/points: 24' in out and 'nrsfm/tracks: 24' in out
     import json
     assert set(json.loads(report.read_text())['timing']) == {'tracker', 'reconstructor'}
+    assert used == ['threads']
+    # none: one stage at a time (the pipelined module not used), the same outputs
+    assert main(['process', str(bag), '--out', str(tmp_path / 'n'), '--stage-workers', 'none',
+                 '--pipeline', 'tracker,reconstructor', '--no-progress']) == 0
+    assert 'nrsfm/points: 24' in capsys.readouterr().out and used == ['threads']
 
 
-def test_process_cli_pipelined_stage_processes(bag, tmp_path, capsys):
+def test_process_cli_stage_processes(bag, tmp_path, capsys):
     from nrsfm_ros.cli import main
-    assert main(['process', str(bag), '--out', str(tmp_path / 'o'), '--pipelined',
+    assert main(['process', str(bag), '--out', str(tmp_path / 'o'),
                  '--stage-workers', 'processes', '--pipeline', 'tracker,reconstructor',
                  '--no-progress']) == 0
     assert 'nrsfm/points: 24' in capsys.readouterr().out
-    rc = main(['process', str(bag), '--out', str(tmp_path / 'p'), '--stage-workers',
-               'processes'])
-    assert rc != 0 and '--stage-workers: only with --pipelined' in capsys.readouterr().err
 
 
-def test_pipelined_is_for_one_bag(bag, tmp_path, capsys):
+def test_stage_workers_are_for_one_bag(bag, tmp_path, capsys):
     from nrsfm_ros.cli import main
-    rc = main(['process', str(bag), str(bag), '--out', str(tmp_path / 'o'), '--pipelined'])
-    assert rc != 0 and '--pipelined: one bag only' in capsys.readouterr().err
+    rc = main(['process', str(bag), str(bag), '--out', str(tmp_path / 'o'),
+               '--stage-workers', 'threads'])
+    assert rc != 0 and '--stage-workers threads: one bag only' in capsys.readouterr().err
     assert not (tmp_path / 'o').exists()
 
 
