@@ -150,7 +150,7 @@ def _parser(verb: str | None = None) -> argparse.ArgumentParser:
     pr.add_argument('--stage-workers', choices=('threads', 'processes', 'none'), default=None,
                     help='one bag: the stages run at once, each in its own thread (the '
                     'default: nothing pickled, the stages overlap where they release the GIL; '
-                    'on 2 cores 0.79-0.93x the wall time of one stage at a time) or process '
+                    'on 2 cores 0.8-1.0x the wall time of one stage at a time) or process '
                     '(no GIL; each starts and pickles its messages), fed in the one-process '
                     'order (the same output messages); none: one stage at a time.  Several '
                     'bags run one stage at a time in each worker (--jobs)')
