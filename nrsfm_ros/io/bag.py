@@ -103,7 +103,7 @@ def _write_own_chunk(storage: Any, connection: Any, stamp: int,
                      data: bytes | bytearray | memoryview) -> None:
     """One message as its own uncompressed chunk of rosbags' MCAP writer, its bytes written
     to the file once: the writer's own path copies every message into a record buffer, the
-    chunk buffer, the chunk's value and the chunk record before the file (0.8-1.5 s of the
+    chunk buffer, the chunk's value and the chunk record before the file (0.5-1.5 s of the
     ~530 MB a 640x480 ``process`` run writes; the file write alone ~0.1 s).  The same records
     as ``McapWriter.write`` followed by ``close_chunk``: the pending chunk is closed first, then
     the chunk, its message index and its chunk index entry (written at close)."""
