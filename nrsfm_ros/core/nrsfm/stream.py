@@ -267,15 +267,24 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     rigid factorisation's cameras turn as far as bmm's (``rigid_observed``)."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
-    from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, planar,
-                         rigid_residual, safe_rigid)
-    rig = safe_rigid(W, V)
+    from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, PLANAR_RIGID_RATIO,
+                         planar, rigid_residual, safe_rigid)
     lam = bmm_lam(V.shape[0])
-    # with the camera the perspective test below also judges planar: the flatness test may
-    # then allow the relief a weak-perspective fit reads into a close camera's perspective
+    # the rigid factorisation and the planar solve two at a time: planar reads the rigid
+    # result only in its last test (the residual ratio, applied here as planar applies it);
+    # its flatness bound with the camera is the one for a rigid result that did not fail
+    # (with the camera the perspective test below also judges planar: the flatness test may
+    # then allow the relief a weak-perspective fit reads into a close camera's perspective)
+    rest_ratio = PLANAR_REST_RATIO_PERSPECTIVE if perspective is not None \
+        else PLANAR_REST_RATIO
+    rig, res = map_threads(lambda f: f(), [
+        lambda: safe_rigid(W, V),
+        lambda: planar(W, V, rigid_check=False, rest_ratio=rest_ratio)])
     checked = perspective is not None and rig is not None
-    res = planar(W, V, rigid_check=rig,
-                 rest_ratio=PLANAR_REST_RATIO_PERSPECTIVE if checked else PLANAR_REST_RATIO)
+    if perspective is not None and rig is None:       # the bound without the camera's test
+        res = planar(W, V, rigid_check=None, rest_ratio=PLANAR_REST_RATIO)
+    elif res.converged and res.residual_px > PLANAR_RIGID_RATIO * rigid_residual(rig):
+        res = replace(res, converged=False)
     if res.converged and checked and \
             reflected_error(res, W, V, *perspective, per_frame=True) > \
             planar_ratio * reflected_error(rig, W, V, *perspective):
@@ -288,9 +297,10 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     # mean over tracks): the full bmm solve is only paid where bmm is taken
     idx = spread_subset(V.shape[1], DECISION_TRACKS)
     sub = idx.size < V.shape[1]
-    trial = bmm(W[:, idx], V[:, idx], lam=lam, iterations=BMM_ITERATIONS) if sub else \
-        bmm(W, V, lam=lam, iterations=BMM_ITERATIONS)
-    rig_sub = safe_rigid(W[:, idx], V[:, idx]) if sub else rig
+    Ws, Vs = (W[:, idx], V[:, idx]) if sub else (W, V)
+    trial, rig_sub = map_threads(lambda f: f(), [          # two at a time, as above
+        lambda: bmm(Ws, Vs, lam=lam, iterations=BMM_ITERATIONS),
+        lambda: safe_rigid(Ws, Vs) if sub else rig])
     if trial.residual_px > BMM_RIGID_RATIO * rigid_residual(rig_sub) or \
             (rig_sub is not None and rigid_observed(rig_sub, trial)):
         return rig
