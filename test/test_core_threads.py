@@ -63,3 +63,41 @@ def test_set_workers_one_runs_serially_and_a_fleet_worker_takes_its_threads():
     finally:
         threads.set_workers(saved)
         cv2.setNumThreads(cv_threads)
+
+
+def test_overlapping_callers_leave_blas_as_it_was():
+    """Two map_threads calls from two threads, overlapping and leaving in the other order: BLAS
+    stays at one thread while either runs and gets its own count back after both."""
+    threadpoolctl = pytest.importorskip('threadpoolctl')
+    np.ones((4, 4)) @ np.ones((4, 4))
+
+    def blas() -> list[int]:
+        return [i['num_threads'] for i in threadpoolctl.threadpool_info()
+                if i['user_api'] == 'blas']
+    before = blas()
+    first_in, second_in, first_may_leave = (threading.Event() for _ in range(3))
+    seen: dict[str, list[int]] = {}
+
+    def first(_):
+        first_in.set()
+        first_may_leave.wait(10)
+        return None
+
+    def second(_):
+        second_in.set()
+        first_may_leave.set()            # the first caller leaves while this one is inside
+        return None
+
+    def run_first():
+        map_threads(first, [0, 1])
+
+    t = threading.Thread(target=run_first)
+    t.start()
+    first_in.wait(10)
+    seen['first running'] = blas()
+    map_threads(lambda x: second(x) if x == 0 else (second_in.wait(10), t.join(10),
+                                                     seen.setdefault('first gone', blas())),
+                [0, 1])
+    t.join(10)
+    assert all(n == 1 for n in seen['first running'] + seen['first gone'])
+    assert blas() == before

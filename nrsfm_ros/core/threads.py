@@ -10,7 +10,8 @@ against 1.75-2.05 s), one thread each 1.44-1.66 s."""
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 T = TypeVar('T')
@@ -38,15 +39,31 @@ def map_threads(fn: Callable[[Any], T], items: Sequence[Any]) -> list[T]:
 
 
 _controller: list[Any] = []     # threadpoolctl's controller, made once (it scans the libraries)
+_blas_lock = threading.Lock()
+_blas_limit: list[Any] = []     # the limit in force while map_threads calls run (any thread)
 
 
-def _blas_single_thread() -> contextlib.AbstractContextManager[Any]:
-    """A context holding the BLAS libraries loaded so far to one thread each (nothing where
-    threadpoolctl is not installed)."""
+@contextlib.contextmanager
+def _blas_single_thread() -> Iterator[None]:
+    """The BLAS libraries loaded so far held to one thread each while any caller is inside
+    (nothing where threadpoolctl is not installed): the first entrant sets the limit, the
+    last one out restores the original, so that calls from several threads overlapping in any
+    order cannot leave BLAS at one thread."""
     try:
         from threadpoolctl import ThreadpoolController
     except ImportError:
-        return contextlib.nullcontext()
-    if not _controller:
-        _controller.append(ThreadpoolController())
-    return _controller[0].limit(limits=1, user_api='blas')
+        yield
+        return
+    with _blas_lock:
+        if not _controller:
+            _controller.append(ThreadpoolController())
+        if not _blas_limit:
+            _blas_limit.append([_controller[0].limit(limits=1, user_api='blas'), 0])
+        _blas_limit[0][1] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_limit[0][1] -= 1
+            if _blas_limit[0][1] == 0:
+                _blas_limit.pop()[0].restore_original_limits()
