@@ -119,8 +119,8 @@ def test_batch_stream_refines_planar_batches_with_the_camera(monkeypatch):
 
     st, e_on = run()
     assert st.pinhole_refinements == 1 and st.perspective_solves == 1
-    monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.refine_planar_pinhole',
-                        lambda res, *a, **k: res)
+    monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.finish_planar_pinhole',
+                        lambda fit, *a, **k: fit.start)
     st, e_off = run()
     assert st.pinhole_refinements == 0
     assert e_on < 0.5 * e_off, (e_on, e_off)
@@ -226,8 +226,8 @@ def test_a_refined_batch_keeps_the_sign_its_pinhole_fit_chose(monkeypatch, batch
     F, P = V.shape
     ids = np.arange(P)
     if not refined:
-        monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.refine_planar_pinhole',
-                            lambda res, *a, **k: res)
+        monkeypatch.setattr('nrsfm_ros.core.nrsfm.stream.finish_planar_pinhole',
+                            lambda fit, *a, **k: fit.start)
     st = _planar_stream(batch, context)
     out = _push(st, ids, W, range(batch))
     assert [sh.index for sh in out] == list(range(batch))

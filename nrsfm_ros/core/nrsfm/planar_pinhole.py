@@ -212,6 +212,27 @@ def pinhole_image(W: np.ndarray, V: np.ndarray, focal: float, principal: np.ndar
         w0_sub=w0 if full else np.ascontiguousarray(w0[:, idx]))
 
 
+@dataclass(frozen=True)
+class PlanarFit:
+    """A refinement's rounds on the spread subset (:func:`fit_planar_pinhole`), waiting for
+    :func:`finish_planar_pinhole` to give every track its rest coordinates and heights:
+    the ``start`` it came from, the poses R (F, 3, 3), T (F, 3), the heights' frame
+    coefficients ``Cf`` (F, K) and point basis ``Bp`` (K, subset), the rest coordinates and
+    heights every track starts the final passes from (``rest`` (P, 2), ``h`` (F, P)), the
+    subset's ``rest_sub`` and its pinhole reprojection error ``subset_px`` (mean, px): what
+    several starts of one batch are ranked by before only the best is finished."""
+    start: NRSfMResult
+    R: np.ndarray
+    T: np.ndarray
+    Cf: np.ndarray
+    Bp: np.ndarray
+    rest: np.ndarray
+    h: np.ndarray
+    rest_sub: np.ndarray
+    subset_px: float
+    t0: float
+
+
 def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
                           principal: np.ndarray, rounds: int = ROUNDS,
                           rank: int = HEIGHT_RANK, robust_px: float = ROBUST_PX,
@@ -224,7 +245,20 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     and the heights' frame coefficients found there then give every track its rest
     coordinates and height basis (per-point closed forms, ``FINAL_PASSES`` times).
     ``image``: :func:`pinhole_image` of the same tracks, intrinsics and ``max_tracks``, shared
-    by several starts (built here when None)."""
+    by several starts (built here when None).  :func:`fit_planar_pinhole` then
+    :func:`finish_planar_pinhole`."""
+    img = pinhole_image(W, V, focal, principal, max_tracks) if image is None else image
+    fit = fit_planar_pinhole(res, W, V, focal, principal, rounds, rank, robust_px, max_tracks,
+                             img)
+    return res if fit is None else finish_planar_pinhole(fit, focal, principal, robust_px, img)
+
+
+def fit_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal: float,
+                       principal: np.ndarray, rounds: int = ROUNDS, rank: int = HEIGHT_RANK,
+                       robust_px: float = ROBUST_PX, max_tracks: int = MAX_TRACKS,
+                       image: PinholeImage | None = None) -> PlanarFit | None:
+    """The rounds of :func:`refine_planar_pinhole` on its spread subset (arguments the same);
+    None where ``res`` cannot start one (non-finite, fewer than 3 frames)."""
     focal, principal = check_intrinsics(focal, principal)
     if rounds < 1:
         raise ValueError(f'rounds: expected >= 1, got {rounds}')
@@ -238,30 +272,51 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     t0 = time.perf_counter()
     F, P = V.shape
     if not (np.isfinite(res.S).all() and np.isfinite(res.t).all()) or F < 3:
-        return res
+        return None
     img = pinhole_image(W, V, focal, principal, max_tracks) if image is None else image
     if img.w0.shape != (F, P):
         raise ValueError(f'image: for {img.w0.shape} tracks, the solve has {(F, P)}')
-    w0, m = img.w0, img.m
-    X = res.S * res.scale[:, None, None] / focal                           # relative to depth
-    X0 = np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
-                   X[..., 1] + (res.t[:, None, 1] - principal[1]) / focal,
-                   1.0 + X[..., 2]], 2)
-    robust = robust_px / focal
-    err0 = _reprojection(X0, m, w0, robust)
+    w0 = img.w0
+    X0 = _start_shapes(res, focal, principal)
     R, T, O = _start_pose(X0, w0)
     wr = w0 + 1e-9                    # a point never seen at V >= 0.5 keeps its mean position
     rest, h = (O[..., :2] * wr[..., None]).sum(0) / wr.sum(0)[:, None], O[..., 2]
     rank = min(rank, F, P)
     idx = img.idx
     R, T, Cf, Bp, rest_sub = _fit(img.rays_sub, img.w0_sub, R, T, rest[idx], h[:, idx], rounds,
-                                  rank, robust)
-    if idx.size < P:                  # every track from the subset's poses and C
-        rest, hT = final_passes(img.rays_points, img.w0_points, R, T, np.ascontiguousarray(Cf),
-                                rest, np.ascontiguousarray(h.T), robust, FINAL_PASSES, 1e-9)
+                                  rank, robust_px / focal)
+    Xs = _posed(rest_sub, Cf @ Bp) @ R.transpose(0, 2, 1) + T[:, None]
+    err = _reprojection(Xs, img.rays_sub[..., :2], img.w0_sub) * focal
+    return PlanarFit(res, R, T, Cf, Bp, rest, h, rest_sub,
+                     err if np.isfinite(err) else np.inf, t0)
+
+
+def _start_shapes(res: NRSfMResult, focal: float, principal: np.ndarray) -> np.ndarray:
+    """``res``'s shapes in the camera frame relative to depth (F, P, 3)."""
+    X = res.S * res.scale[:, None, None] / focal
+    return np.stack([X[..., 0] + (res.t[:, None, 0] - principal[0]) / focal,
+                     X[..., 1] + (res.t[:, None, 1] - principal[1]) / focal,
+                     1.0 + X[..., 2]], 2)
+
+
+def finish_planar_pinhole(fit: PlanarFit, focal: float, principal: np.ndarray,
+                          robust_px: float, image: PinholeImage) -> NRSfMResult:
+    """Every track of ``fit`` from its subset's poses and heights' frame coefficients
+    (``FINAL_PASSES``), kept when it explains the image better than its start (``MIN_GAIN``)
+    with every point in front: the refined result, else ``fit.start`` itself."""
+    focal, principal = check_intrinsics(focal, principal)
+    res, img = fit.start, image
+    w0, m = img.w0, img.m
+    robust = robust_px / focal
+    err0 = _reprojection(_start_shapes(res, focal, principal), m, w0, robust)
+    R, T = fit.R, fit.T
+    if img.idx.size < w0.shape[1]:     # every track from the subset's poses and C
+        rest, hT = final_passes(img.rays_points, img.w0_points, R, T,
+                                np.ascontiguousarray(fit.Cf), fit.rest,
+                                np.ascontiguousarray(fit.h.T), robust, FINAL_PASSES, 1e-9)
         h = hT.T
     else:
-        rest, h = rest_sub, Cf @ Bp
+        rest, h = fit.rest_sub, fit.Cf @ fit.Bp
     Xr = _posed(rest, h) @ R.transpose(0, 2, 1) + T[:, None]
     if not (np.isfinite(Xr).all() and _reprojection(Xr, m, w0, robust) < (1.0 - MIN_GAIN) * err0):
         return res
@@ -271,7 +326,7 @@ def refine_planar_pinhole(res: NRSfMResult, W: np.ndarray, V: np.ndarray, focal:
     S, scale, t = stream_convention(Xr, w0, focal, principal)
     return replace(res, S=S, R=R, scale=scale, t=t,
                    residual_px=_reprojection(Xr, m, w0) * focal,
-                   seconds=res.seconds + time.perf_counter() - t0)
+                   seconds=res.seconds + time.perf_counter() - fit.t0)
 
 
 def stream_convention(X: np.ndarray, w: np.ndarray, focal: float, principal: np.ndarray

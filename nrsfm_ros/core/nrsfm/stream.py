@@ -59,7 +59,8 @@ from .factorization import low_rank, rigid
 from .perspective import (RATIO_RANGE, check_intrinsics, frame_errors, frame_reflections,
                           perspective_solve, reflect_frames, reflected_error)
 from .planar import PLANAR_PERSPECTIVE_RATIO
-from .planar_pinhole import pinhole_image, refine_planar_pinhole
+from .planar_pinhole import (ROBUST_PX, finish_planar_pinhole, fit_planar_pinhole,
+                             pinhole_image)
 from .result import NRSfMResult
 from .rigid_pinhole import batch_sign
 from .spva import WEIGHTINGS, ShapePrior
@@ -673,7 +674,10 @@ class StreamNRSfM:
         plane faces the camera (``plane_crossings``) leaves the rest of the batch reflected
         with little evidence in the unrefined image, so the refinement also starts from the
         batch reflected after each such frame (the 300-frame sheet at 30 deg: its third batch
-        0.78 px as-is, 0.36 px from its crossing)."""
+        0.78 px as-is, 0.36 px from its crossing).  The starts' rounds run on the spread
+        subset and are ranked by their reprojection error there; only the best that explains
+        the image better than its start is finished on every track (the final passes were a
+        quarter of each start's time)."""
         intrinsics = self._intrinsics
         assert intrinsics is not None
         signs = frame_reflections(frame_errors(res, W, V, *intrinsics), per_frame=True)
@@ -682,13 +686,14 @@ class StreamNRSfM:
         starts += [reflect_frames(res, np.where(after > c, -1.0, 1.0))
                    for c in plane_crossings(res.R)]
         image = pinhole_image(W, V, *intrinsics)      # one for every start
-        refined = map_threads(lambda s: refine_planar_pinhole(s, W, V, *intrinsics,
-                                                              image=image), starts)
-        done = [r for r in refined if not any(r is s for s in starts)]
-        if not done:
-            return res
-        self.pinhole_refinements += 1
-        return min(done, key=lambda r: r.residual_px)
+        fits = map_threads(lambda s: fit_planar_pinhole(s, W, V, *intrinsics, image=image),
+                           starts)
+        for fit in sorted((f for f in fits if f is not None), key=lambda f: f.subset_px):
+            refined = finish_planar_pinhole(fit, *intrinsics, ROBUST_PX, image)
+            if refined is not fit.start:
+                self.pinhole_refinements += 1
+                return refined
+        return res
 
     def _frame_reflections(self, res: NRSfMResult, W: np.ndarray, V: np.ndarray
                            ) -> NRSfMResult:
