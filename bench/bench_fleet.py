@@ -1,6 +1,6 @@
 """Throughput of ``nrsfm-ros process BAG ... --jobs N`` against ``--jobs 1``, and of ``--ray``.
 
-    .venv/bin/python bench/bench_fleet.py [--bags 4] [--size 128x96] [--frames 20]
+    .venv/bin/python bench/bench_fleet.py [--bags 4] [--size 320x240] [--frames 80]
                                           [--jobs 1,2] [--repeat 2] [--ray] [--json out.json]
 
 Writes ``--bags`` synthetic bags (flag surface, seeds 0.., in a temporary folder; ``--frames``
@@ -72,8 +72,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--bags', type=int, default=4)
-    p.add_argument('--size', default='128x96')
-    p.add_argument('--frames', default='20',
+    p.add_argument('--size', default='320x240')   # the `process` targets' bags (issue 17)
+    p.add_argument('--frames', default='80',
                    help='frames per bag: one count, or a comma list cycled over the bags')
     p.add_argument('--jobs', default='1,2')
     p.add_argument('--repeat', type=int, default=2)
