@@ -252,7 +252,8 @@ def test_auto_keeps_planar_more_readily_after_a_planar_batch(monkeypatch):
     ids = np.arange(V.shape[1])
     calls = []
 
-    def recorded(W, V, perspective=None, planar_ratio=stream_mod.PLANAR_PERSPECTIVE_RATIO):
+    def recorded(W, V, perspective=None, planar_ratio=stream_mod.PLANAR_PERSPECTIVE_RATIO,
+                 rank=2):
         res = original(W, V, perspective, planar_ratio)
         calls.append((planar_ratio, res.method))
         return res

@@ -507,26 +507,36 @@ def test_plane_crossings_are_the_deep_dips_of_the_tilt():
 
 def test_a_planar_batch_is_also_refined_from_its_crossings(monkeypatch):
     """The pinhole refinement of a planar batch also starts from the batch reflected after
-    each crossing (a Necker slip there leaves little trace in the unrefined image), and the
-    lowest reprojection error wins."""
+    each crossing (a Necker slip there leaves little trace in the unrefined image); the
+    starts' fits are ranked by their reprojection error on the spread subset and only the
+    best is finished on every track."""
+    from types import SimpleNamespace
+
     import nrsfm_ros.core.nrsfm.stream as st
     res = _yawed(25 * np.sin(2 * np.pi * np.arange(60) / 60))   # one crossing, at frame 30
     calls = []
 
-    def fake_refine(start, W, V, focal, principal, image=None):
+    finished = []
+
+    def fake_fit(start, W, V, focal, principal, image=None):
         z = start.S[:, :, 2]
         k = len(calls)
         calls.append(np.sign(z[:, 1]))
         # the start reflected after frame 30 explains the image best
-        return replace(start, residual_px=0.5 if (z[31:, 1] < 0).all() and (z[:31, 1] > 0).all()
-                       else 0.9 + 0.01 * k)
-    monkeypatch.setattr(st, 'refine_planar_pinhole', fake_refine)
+        best = (z[31:, 1] < 0).all() and (z[:31, 1] > 0).all()
+        return SimpleNamespace(start=start, subset_px=0.5 if best else 0.9 + 0.01 * k)
+
+    def fake_finish(fit, focal, principal, robust_px, image):
+        finished.append(fit.subset_px)
+        return replace(fit.start, residual_px=fit.subset_px)
+    monkeypatch.setattr(st, 'fit_planar_pinhole', fake_fit)
+    monkeypatch.setattr(st, 'finish_planar_pinhole', fake_finish)
     monkeypatch.setattr(st, 'frame_reflections', lambda errors, per_frame: np.ones(60))
     stream = StreamNRSfM(mode='batch', projection='perspective')
     stream.set_intrinsics(300.0, np.array([128.0, 96.0]))
     out = stream._refine_planar(res, np.zeros((120, 8)), np.ones((60, 8)))
     assert len(calls) == 2                       # as solved, and reflected after frame 30
-    assert out.residual_px == 0.5
+    assert finished == [0.5] and out.residual_px == 0.5
     assert (out.S[31:, 1, 2] < 0).all() and (out.S[:31, 1, 2] > 0).all()
 
 

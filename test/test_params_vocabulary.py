@@ -245,7 +245,7 @@ def test_reconstructor_choices_are_the_cores():
         s = make_stream(p)
         assert len(_run(s, d, ids)) == 8, m
         assert not s.fallbacks, (m, s.fallbacks)
-        assert s.last_method == m if m != 'auto' else s.last_method in ('planar', 'bmm', 'rigid')
+        assert s.last_method == m if m != 'auto' else s.last_method in ('planar', 'bmm', 'rigid', 'lowrank')
     for m in modes:
         p = ReconstructorParams().updated({'mode': m, 'window': 4, 'batch_frames': 8,
                                            'spva_prior_frames': 4})

@@ -231,7 +231,7 @@ def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
                planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
-        return auto_solve(W, V, perspective, planar_ratio)
+        return auto_solve(W, V, perspective, planar_ratio, rank)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'bmm':
         kw = {'iterations': BMM_ITERATIONS, 'lam': bmm_lam(V.shape[0])}
@@ -253,7 +253,8 @@ def rigid_observed(rig: NRSfMResult, trial: NRSfMResult) -> bool:
 
 def auto_solve(W: np.ndarray, V: np.ndarray,
                perspective: tuple[float, np.ndarray] | None = None,
-               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
+               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO, rank: int = 2
+               ) -> NRSfMResult:
     """``method: auto``: the deformation model chosen from the tracks, among three nested in
     freedom: ``planar`` where its tests pass (a flat rest shape whose reprojection residual is
     at most ``PLANAR_RIGID_RATIO`` x one rigid shape's; with the camera's ``perspective``
@@ -265,7 +266,9 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     rigid factorisation leaves: its per-frame shapes then fit what the rigid shape cannot by
     depths the camera motion does not observe (or its fill of hidden tracks failed), and rigid
     is taken; or where the cameras turn too little to observe the deformation's depth and the
-    rigid factorisation's cameras turn as far as bmm's (``rigid_observed``)."""
+    rigid factorisation's cameras turn as far as bmm's (``rigid_observed``).  Where rigid is
+    taken, its shapes become a rank-``rank`` shape basis started from it (``lowrank``,
+    :func:`_rigid_basis`): the deformation the rigid shape leaves in its residual."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
     from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, PLANAR_RIGID_RATIO,
@@ -304,13 +307,45 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
         lambda: safe_rigid(Ws, Vs) if sub else rig])
     if trial.residual_px > BMM_RIGID_RATIO * rigid_residual(rig_sub) or \
             (rig_sub is not None and rigid_observed(rig_sub, trial)):
-        return rig
+        return _rigid_basis(W, V, rig, rank)
     if not sub:
         return trial
     # the full solve starts from the subset's, extended to every track: its cameras stand in
     # for a metric projection of all tracks (the same e3D within +-6% on the sweep's bmm
     # cases, BENCHMARKS issue 17, session 16)
     return bmm_warm(W, V, extend(trial, idx, W, V), lam=lam, iterations=BMM_ITERATIONS)
+
+
+def _rigid_basis(W: np.ndarray, V: np.ndarray, rig: NRSfMResult, rank: int) -> NRSfMResult:
+    """``auto`` where it takes the rigid factorisation ``rig``: the rank-``rank`` shape basis
+    (``lowrank``) started from its cameras and shape, ``rig`` itself where that cannot run
+    (a frame that sees no track) or fails.  On the 48-case sweep (BENCHMARKS, issue 12,
+    session 46) the face's jaw and cheeks, which one rigid shape averages away, come back:
+    the face through the tracker 1.03x -> 0.89x static (median), on ground-truth tracks 0.88x
+    -> 0.59x, the breathing cap within its spread."""
+    from .extend import extend, spread_subset
+    from .factorization import low_rank
+    idx = spread_subset(V.shape[1], DECISION_TRACKS)     # then every track by its basis
+    sub = idx.size < V.shape[1]
+    try:
+        res = low_rank(W[:, idx], V[:, idx], rank=rank, init=replace(rig, S=rig.S[:, idx])) \
+            if sub else low_rank(W, V, rank=rank, init=rig)
+        if sub:
+            res = extend(res, idx, W, V)
+    except (ValueError, np.linalg.LinAlgError):
+        return rig
+    return res if np.isfinite(res.S).all() and np.isfinite(res.R).all() else rig
+
+
+def _auto_basis(W: np.ndarray, V: np.ndarray, rank: int) -> NRSfMResult:
+    """``auto``'s choice of the rigid basis (:func:`_rigid_basis`) solved again, on the
+    perspective-corrected tracks: the rigid factorisation, then its basis."""
+    from .planar import safe_rigid
+    rig = safe_rigid(W, V)
+    if rig is None:
+        from . import reconstruct
+        return reconstruct(W, V, method='lowrank', rank=rank)
+    return _rigid_basis(W, V, rig, rank)
 
 
 def _integer(name: str, value: Any, lo: int) -> int:
@@ -643,9 +678,15 @@ class StreamNRSfM:
             # a flat-at-rest surface to bmm (sheet 60 deg amplitude 2: rest ratio 0.077 -> 0.085
             # against 0.08, e3D 0.10 -> 0.25)
             method = weak.method if self.method == 'auto' and \
-                weak.method in ('planar', 'bmm', 'rigid') else self.method
+                weak.method in ('planar', 'bmm', 'rigid', 'lowrank') else self.method
+            basis = self.method == 'auto' and method == 'lowrank' and \
+                self._solver is _solve_default     # auto's rigid basis, as auto built it
 
             def solve_fixed(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
+                if basis:
+                    from .extend import subset_solve
+                    return subset_solve(lambda W, V: _auto_basis(W, V, self.rank), W, V,
+                                        BATCH_MAX_TRACKS)
                 return self._solver(W, V, method, self.rank)
             warm = _warm_bmm if method == 'bmm' and weak.method == 'bmm' and \
                 self._solver is _solve_default else None
