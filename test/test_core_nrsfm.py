@@ -660,6 +660,7 @@ def test_auto_takes_rigid_where_bmm_does_not_explain_what_rigid_leaves():
     assert res.method == 'lowrank'
     assert e3d_normalized(res.S, S) < 0.1 * e3d_normalized(bm.S, S)
     assert e3d_normalized(res.S, S) < 1.2 * e3d_normalized(rig.S, S)
+    assert auto_solve(W, np.ones((F, P)), rank=0).method == 'rigid'   # dspr / spva priors
     W2, _, _ = low_rank_sequence(K=3, F=60, P=300)
     res2 = auto_solve(W2, np.ones((60, 300)))
     assert res2.method == 'bmm'

@@ -191,13 +191,15 @@ class _Frame:
 
 def _solve_default(W: np.ndarray, V: np.ndarray, method: str, rank: int,
                    perspective: tuple[float, np.ndarray] | None = None,
-                   planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
+                   planar_ratio: float = PLANAR_PERSPECTIVE_RATIO,
+                   basis: bool = True) -> NRSfMResult:
     """A batch solve with ``method``; over ``BATCH_MAX_TRACKS`` tracks on a spread subset,
     extended to every track (core/nrsfm/extend.py).  ``perspective``: the camera's (focal,
-    principal point), for ``auto``'s planar test, and ``planar_ratio`` its bound."""
+    principal point), for ``auto``'s planar test, and ``planar_ratio`` its bound; ``basis``:
+    ``auto``'s rigid choice as its rank-``rank`` basis (:func:`auto_solve`)."""
     from .extend import subset_solve
     return subset_solve(lambda W, V: _solve_all(W, V, method, rank, perspective,
-                                                 planar_ratio), W, V, BATCH_MAX_TRACKS)
+                                                 planar_ratio, basis), W, V, BATCH_MAX_TRACKS)
 
 
 def bmm_lam(frames: int) -> float:
@@ -228,10 +230,11 @@ def _warm_bmm_staged(W: np.ndarray, V: np.ndarray, start: NRSfMResult
 
 def _solve_all(W: np.ndarray, V: np.ndarray, method: str, rank: int,
                perspective: tuple[float, np.ndarray] | None = None,
-               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO) -> NRSfMResult:
+               planar_ratio: float = PLANAR_PERSPECTIVE_RATIO,
+               basis: bool = True) -> NRSfMResult:
     from . import reconstruct
     if method == 'auto':
-        return auto_solve(W, V, perspective, planar_ratio, rank)
+        return auto_solve(W, V, perspective, planar_ratio, rank if basis else 0)
     kw = {'rank': rank} if method in ('lowrank', 'amp') else {}
     if method == 'bmm':
         kw = {'iterations': BMM_ITERATIONS, 'lam': bmm_lam(V.shape[0])}
@@ -268,7 +271,9 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     is taken; or where the cameras turn too little to observe the deformation's depth and the
     rigid factorisation's cameras turn as far as bmm's (``rigid_observed``).  Where rigid is
     taken, its shapes become a rank-``rank`` shape basis started from it (``lowrank``,
-    :func:`_rigid_basis`): the deformation the rigid shape leaves in its residual."""
+    :func:`_rigid_basis`): the deformation the rigid shape leaves in its residual; ``rank``
+    0: rigid itself (the stream's ``dspr`` and ``spva`` priors, whose recurrence tests and
+    states were measured on it)."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
     from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, PLANAR_RIGID_RATIO,
@@ -307,7 +312,7 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
         lambda: safe_rigid(Ws, Vs) if sub else rig])
     if trial.residual_px > BMM_RIGID_RATIO * rigid_residual(rig_sub) or \
             (rig_sub is not None and rigid_observed(rig_sub, trial)):
-        return _rigid_basis(W, V, rig, rank)
+        return _rigid_basis(W, V, rig, rank) if rank > 0 else rig
     if not sub:
         return trial
     # the full solve starts from the subset's, extended to every track: its cameras stand in
@@ -319,10 +324,11 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
 def _rigid_basis(W: np.ndarray, V: np.ndarray, rig: NRSfMResult, rank: int) -> NRSfMResult:
     """``auto`` where it takes the rigid factorisation ``rig``: the rank-``rank`` shape basis
     (``lowrank``) started from its cameras and shape, ``rig`` itself where that cannot run
-    (a frame that sees no track) or fails.  On the 48-case sweep (BENCHMARKS, issue 12,
+    (a frame that sees no track) or fails; on at most ``DECISION_TRACKS`` spread tracks,
+    extended to every track by its basis.  On the 48-case sweep (BENCHMARKS, issue 12,
     session 46) the face's jaw and cheeks, which one rigid shape averages away, come back:
-    the face through the tracker 1.03x -> 0.89x static (median), on ground-truth tracks 0.88x
-    -> 0.59x, the breathing cap within its spread."""
+    the face through the tracker 1.03x -> 0.87x static (median), on ground-truth tracks 0.88x
+    -> 0.70x; the breathing cap 1.22x -> 1.26x."""
     from .extend import extend, spread_subset
     from .factorization import low_rank
     idx = spread_subset(V.shape[1], DECISION_TRACKS)     # then every track by its basis
@@ -662,11 +668,14 @@ class StreamNRSfM:
 
     def _batch_solve(self, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
         def solve(W: np.ndarray, V: np.ndarray) -> NRSfMResult:
-            if self._solver is _solve_default and self.projection == 'perspective':
-                return _solve_default(W, V, self.method, self.rank, self._intrinsics,
+            if self._solver is _solve_default:     # batch mode: auto's rigid as its basis
+                persp = self.projection == 'perspective'
+                return _solve_default(W, V, self.method, self.rank,
+                                      self._intrinsics if persp else None,
                                       PLANAR_PERSPECTIVE_RATIO * (
-                                          PLANAR_KEPT_RATIO if self.last_method == 'planar'
-                                          else 1.0))
+                                          PLANAR_KEPT_RATIO if persp and
+                                          self.last_method == 'planar' else 1.0),
+                                      self.mode == 'batch')
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
         self._pinhole_signed = False
