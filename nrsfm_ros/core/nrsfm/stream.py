@@ -330,7 +330,6 @@ def _rigid_basis(W: np.ndarray, V: np.ndarray, rig: NRSfMResult, rank: int) -> N
     the face through the tracker 1.03x -> 0.87x static (median), on ground-truth tracks 0.88x
     -> 0.70x; the breathing cap 1.22x -> 1.26x."""
     from .extend import extend, spread_subset
-    from .factorization import low_rank
     idx = spread_subset(V.shape[1], DECISION_TRACKS)     # then every track by its basis
     sub = idx.size < V.shape[1]
     try:
@@ -348,10 +347,7 @@ def _auto_basis(W: np.ndarray, V: np.ndarray, rank: int) -> NRSfMResult:
     perspective-corrected tracks: the rigid factorisation, then its basis."""
     from .planar import safe_rigid
     rig = safe_rigid(W, V)
-    if rig is None:
-        from . import reconstruct
-        return reconstruct(W, V, method='lowrank', rank=rank)
-    return _rigid_basis(W, V, rig, rank)
+    return low_rank(W, V, rank=rank) if rig is None else _rigid_basis(W, V, rig, rank)
 
 
 def _integer(name: str, value: Any, lo: int) -> int:
