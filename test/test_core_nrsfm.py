@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import importlib
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -713,6 +716,27 @@ def test_auto_takes_rigid_where_the_views_barely_observe_depth_and_rigid_turns_a
         return e3d_frobenius(S, seq.S, 'frame', scale=True)
     assert res.method == 'lowrank'
     assert e3d(res.S) < e3d(static) and e3d(res.S) < 0.5 * e3d(bm.S)
+
+
+def test_auto_keeps_rigid_where_its_basis_cannot_run_or_fails(monkeypatch):
+    """The rigid basis falls back to the rigid solve itself where ``lowrank`` refuses the
+    tracks (a ValueError naming them) or returns non-finite shapes."""
+    import nrsfm_ros.core.nrsfm.stream as st
+    W, S = _rigid_body_small_rotation()
+    V = np.ones(S.shape[:2])
+
+    def refuses(*a, **k):
+        raise ValueError('V: frame(s) [3] see no point')
+    monkeypatch.setattr(st, 'low_rank', refuses)
+    assert st.auto_solve(W, V).method == 'rigid'
+    real = importlib.import_module('nrsfm_ros.core.nrsfm.factorization').low_rank
+
+    def diverges(*a, **k):
+        res = real(*a, **k)
+        return replace(res, S=np.full_like(res.S, np.nan))
+    monkeypatch.setattr(st, 'low_rank', diverges)
+    res = st.auto_solve(W, V)
+    assert res.method == 'rigid' and np.isfinite(res.S).all()
 
 
 def test_auto_solves_its_rigid_basis_again_on_the_corrected_tracks(monkeypatch):
