@@ -253,7 +253,9 @@ class ReconstructorParams(Params):
                      'surface in metres, every frame; track_id = grid node)')
     method: str = rule('auto', _one_of(*BATCH_METHODS),
                        'NRSfM method in batch mode (auto: planar when the rest shape tests '
-                       'planar, else bmm; window and online modes run the rank-K alternation)')
+                       'planar, else bmm, or where bmm explains too little or the cameras '
+                       'turn too little the rigid shape as the start of a rank-K basis; '
+                       'window and online modes run the rank-K alternation)')
     window: int = rule(15, _at_least(3), 'frames per sliding window')
     batch_frames: int = rule(60, _at_least(3), 'frames per batch (batch mode; dspr: the '
                              'batch the prior is built from) where batch_seconds is 0 or the '
@@ -274,7 +276,8 @@ class ReconstructorParams(Params):
                            'of the time (a textured background sliding behind the surface, '
                            'the rim) has depths the batch does not observe; the status '
                            'tracks_left_out counts them (0: every track seen in 2 frames)')
-    rank: int = rule(2, _at_least(1), 'shape basis rank K (window mode, lowrank)')
+    rank: int = rule(2, _at_least(1), "shape basis rank K (window mode, lowrank, auto's "
+                     'rigid basis in batch mode)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')
     projection: str = rule('perspective', _one_of('perspective', 'weak'),
                            'camera model of batch solves: perspective (with CameraInfo: the '
