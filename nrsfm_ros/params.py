@@ -287,7 +287,8 @@ class ReconstructorParams(Params):
     dspr_recurrence_px: float = rule(0.0, _non_negative,
                                      'dspr: RMS reprojection residual (px) under which a frame '
                                      'is a recurrence of a prior state (0: 1.5 x the first '
-                                     "batch's residual, at least 0.75 px)")
+                                     "batch's residual, at least 0.75 px; 3 x where the batch "
+                                     "was auto's rigid basis)")
     dspr_distinct: float = rule(0.0, _non_negative,
                                 'dspr: shape distance (sine of the angle after Procrustes) '
                                 'above which a shape is a new state (merges the batch, grows '

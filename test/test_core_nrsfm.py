@@ -774,6 +774,34 @@ def test_auto_solves_its_rigid_basis_again_on_the_corrected_tracks(monkeypatch):
     assert summary['e3d'] < summary['static'], summary
 
 
+def test_dspr_prior_on_the_rigid_basis_tests_recurrence_against_rigid_noise():
+    """``dspr``'s first batch takes ``auto``'s rigid basis too; its recurrence threshold is
+    then ``BASIS_RECURRENCE`` x the usual one (the basis fits about half of the residual rigid
+    leaves, the tracks' noise among it), and ``spva``'s prior keeps rigid."""
+    import nrsfm_ros.core.nrsfm.stream as st
+    from nrsfm_ros.io.synth import SynthConfig, generate
+    seq = generate(SynthConfig(surface='face', camera_motion_deg=12, frames=64))
+    ids = seq.track_ids
+    for mode, method in (('dspr', 'lowrank'), ('spva', 'rigid')):
+        stream = st.StreamNRSfM(mode=mode, batch_frames=60, spva_prior_frames=10,
+                                projection='perspective')
+        stream.set_intrinsics(float(seq.K[0, 0]), seq.K[:2, 2])
+        out = []
+        for f in range(64):
+            out += stream.push(ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
+        out += stream.flush()
+        assert [sh.index for sh in out] == list(range(64)), mode
+        assert stream.last_method == method, mode             # the first batch's solve
+    batch = st.StreamNRSfM(mode='dspr', batch_frames=60, projection='perspective')
+    batch.set_intrinsics(float(seq.K[0, 0]), seq.K[:2, 2])
+    for f in range(60):
+        batch.push(ids, seq.W[2 * f:2 * f + 2].T, seq.V[f])
+    res = batch._batch_last[1]
+    assert res.method == 'lowrank' and batch.prior is not None
+    assert batch.prior.recurrence_px == pytest.approx(
+        st.RECURRENCE_AUTO * st.BASIS_RECURRENCE * max(res.residual_px, st.RECURRENCE_MIN_PX))
+
+
 def test_auto_decides_bmm_against_rigid_on_a_spread_subset(monkeypatch):
     """Over DECISION_TRACKS tracks the bmm / rigid decision runs on a spread subset and the full
     bmm solve only where bmm is taken, started from the subset's solution (``bmm_warm``): the

@@ -118,6 +118,10 @@ SIGN_FIT_FRAMES = 30      # a later batch refined under the pinhole camera over 
 #   reflected) and wrong by its fit (19): BENCHMARKS, issue 12, session 35
 RECURRENCE_AUTO = 1.5     # dspr_recurrence_px 0: this x the prior batch's RMS residual (px)
 RECURRENCE_MIN_PX = 0.5   # ... but at least this x RECURRENCE_AUTO
+BASIS_RECURRENCE = 2.0    # ... and this x more where the batch was auto's rigid basis: it fits
+#   about half of the residual rigid leaves (0.32-0.54 of it on the face, through the tracker),
+#   the tracks' noise among it, and the test is against that noise (periodic cap: compression
+#   10.9 with rigid's prior, 4.3 on the basis at 1.5 x its residual, 10.9 at 2 x 1.5)
 DISTINCT_AUTO = 0.5       # dspr_distinct 0: this x the batch's mean shape distance from its
 DISTINCT_MIN = 1e-3       # first shape (its deformation range), at least DISTINCT_MIN
 CONTEXT_OVERLAP = 0.5     # batch_context: a published frame is context of a later batch while it
@@ -272,8 +276,8 @@ def auto_solve(W: np.ndarray, V: np.ndarray,
     rigid factorisation's cameras turn as far as bmm's (``rigid_observed``).  Where rigid is
     taken, its shapes become a rank-``rank`` shape basis started from it (``lowrank``,
     :func:`_rigid_basis`): the deformation the rigid shape leaves in its residual; ``rank``
-    0: rigid itself (the stream's ``dspr`` and ``spva`` priors, whose recurrence tests and
-    states were measured on it)."""
+    0: rigid itself (the stream's ``spva`` prior, whose weights and subspace were measured
+    on it; ``dspr`` takes the basis, its recurrence test ``BASIS_RECURRENCE`` x looser)."""
     from .bmm import bmm, bmm_warm
     from .extend import extend, spread_subset
     from .planar import (PLANAR_REST_RATIO, PLANAR_REST_RATIO_PERSPECTIVE, PLANAR_RIGID_RATIO,
@@ -439,6 +443,7 @@ class StreamNRSfM:
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
         self.prior: DynamicShapePrior | ShapePrior | None = None   # dspr / spva: the prior
         self._batch_perspective = False               # the last batch solve was perspective
+        self._basis_batch = False                     # the last batch was auto's rigid basis
         self._pinhole_signed = False    # the last batch's depth sign is its pinhole fit's
         self._prior_perspective = False               # spva's prior from a perspective batch
         self._prior_ids = np.empty(0, np.int64)
@@ -671,7 +676,7 @@ class StreamNRSfM:
                                       PLANAR_PERSPECTIVE_RATIO * (
                                           PLANAR_KEPT_RATIO if persp and
                                           self.last_method == 'planar' else 1.0),
-                                      self.mode == 'batch')
+                                      self.mode in ('batch', 'dspr'))
             return self._solver(W, V, self.method, self.rank)
         self._batch_perspective = False
         self._pinhole_signed = False
@@ -706,6 +711,7 @@ class StreamNRSfM:
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method
+        self._basis_batch = self.method == 'auto' and res.method == 'lowrank'   # rigid's basis
         return res
 
     def _refine_planar(self, res: NRSfMResult, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
@@ -976,8 +982,8 @@ class StreamNRSfM:
             replace(res, S=shapes, R=np.broadcast_to(np.eye(3), res.R.shape).copy(),
                     scale=np.ones(res.S.shape[0])),
             distinct=distinct, recurrence_px=self.dspr_recurrence_px
-            or RECURRENCE_AUTO * max(res.residual_px if np.isfinite(res.residual_px) else 0.0,
-                                     RECURRENCE_MIN_PX),
+            or RECURRENCE_AUTO * (BASIS_RECURRENCE if self._basis_batch else 1.0) * max(
+                res.residual_px if np.isfinite(res.residual_px) else 0.0, RECURRENCE_MIN_PX),
             prior_weight=self.dspr_prior_weight)
         self._prior_ids = ids
 
