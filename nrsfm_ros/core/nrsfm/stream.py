@@ -443,7 +443,6 @@ class StreamNRSfM:
         self._batch_last: tuple[np.ndarray, NRSfMResult, np.ndarray] | None = None
         self.prior: DynamicShapePrior | ShapePrior | None = None   # dspr / spva: the prior
         self._batch_perspective = False               # the last batch solve was perspective
-        self._basis_batch = False                     # the last batch was auto's rigid basis
         self._pinhole_signed = False    # the last batch's depth sign is its pinhole fit's
         self._prior_perspective = False               # spva's prior from a perspective batch
         self._prior_ids = np.empty(0, np.int64)
@@ -711,7 +710,6 @@ class StreamNRSfM:
             self.perspective_solves += res is not weak
             self._batch_perspective = res is not weak
         self.last_method = res.method
-        self._basis_batch = self.method == 'auto' and res.method == 'lowrank'   # rigid's basis
         return res
 
     def _refine_planar(self, res: NRSfMResult, W: np.ndarray, V: np.ndarray) -> NRSfMResult:
@@ -976,13 +974,14 @@ class StreamNRSfM:
         if res.method == 'flat' or res.S.shape[0] < 2:
             return                              # nothing to learn from: stay in batch mode
         shapes = object_shapes(res) * flip
+        basis = self.method == 'auto' and self.last_method == 'lowrank'   # auto's rigid basis
         distinct = self.dspr_distinct or max(
             DISTINCT_AUTO * float(np.mean(shape_distance(shapes[0], shapes))), DISTINCT_MIN)
         self.prior, _ = DynamicShapePrior.from_batch(
             replace(res, S=shapes, R=np.broadcast_to(np.eye(3), res.R.shape).copy(),
                     scale=np.ones(res.S.shape[0])),
             distinct=distinct, recurrence_px=self.dspr_recurrence_px
-            or RECURRENCE_AUTO * (BASIS_RECURRENCE if self._basis_batch else 1.0) * max(
+            or RECURRENCE_AUTO * (BASIS_RECURRENCE if basis else 1.0) * max(
                 res.residual_px if np.isfinite(res.residual_px) else 0.0, RECURRENCE_MIN_PX),
             prior_weight=self.dspr_prior_weight)
         self._prior_ids = ids
