@@ -84,7 +84,10 @@ def highpass(gray: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
 def depth_noise(depth: np.ndarray) -> float:
     """Robust estimate (m) of a depth image's noise sigma: the median absolute deviation of
     each pixel from the mean of its 4 neighbours (where all five have depth), which on a
-    smooth surface is noise times sqrt(1.25).  0.0 when no pixel qualifies."""
+    smooth surface is noise times sqrt(1.25); for quantised depth (a structured-light
+    sensor's disparity steps, or millimetres: over a fifth of the neighbours equal, where the
+    MAD sees no noise at all) at least the quantisation error, step / sqrt(12), the step the
+    median of the neighbours' non-zero differences.  0.0 when no pixel qualifies."""
     z = np.asarray(depth, np.float32)
     ok = np.isfinite(z)
     zf = np.where(ok, z, 0).astype(np.float32)
@@ -94,7 +97,95 @@ def depth_noise(depth: np.ndarray) -> float:
                   borderValue=0) > 0]
     if res.size == 0:
         return 0.0
-    return float(1.4826 * np.median(np.abs(res - np.median(res))) / np.sqrt(1.25))
+    mad = float(1.4826 * np.median(np.abs(res - np.median(res))) / np.sqrt(1.25))
+    d = np.concatenate([(z[:, 1:] - z[:, :-1]).ravel(), (z[1:] - z[:-1]).ravel()])
+    zz = np.concatenate([z[:, 1:].ravel(), z[1:].ravel()])
+    with np.errstate(invalid='ignore'):
+        d = np.abs(d[np.isfinite(d) & (np.abs(d) < QUANT_SMOOTH * zz)])
+    if d.size == 0 or np.mean(d == 0) <= QUANT_EQUAL:
+        return mad
+    step = float(np.median(d[d > 0])) if (d > 0).any() else 0.0
+    return max(mad, step / np.sqrt(12.0))
+
+
+RAY_CLAMP = 2.0     # _refine: along-ray moves from a segment's rigid motion beyond this x
+#   max_depth_residual are reset (the face 4 m before a wall: 1.38 -> 0.53 mm; 1x: 0.44 mm but
+#   the flag's wall cases 2-9% worse, 2x: none worse)
+QUANT_EQUAL = 0.2    # depth_noise: quantised where more of the neighbour pairs are equal
+QUANT_SMOOTH = 0.05  # depth_noise: neighbour pairs nearer than this x depth (not an edge)
+
+
+def depth_edges(depth: np.ndarray, min_jump: float, rel_jump: float = 0.03) -> np.ndarray:
+    """(H, W) bool: pixels with depth beside a 4-neighbour more than ``max(min_jump, rel_jump
+    z)`` metres nearer or further (a silhouette before a background, a self-occlusion)."""
+    z = np.asarray(depth, np.float32)
+    thr = np.maximum(np.float32(min_jump), np.float32(rel_jump) * np.nan_to_num(z))
+    edge = np.zeros(z.shape, bool)
+    for a, b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                 ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
+        with np.errstate(invalid='ignore'):
+            jump = np.abs(z[a] - z[b]) > np.maximum(thr[a], thr[b])
+        edge[a] |= jump
+        edge[b] |= jump
+    return edge
+
+
+def depth_layers(depth: np.ndarray, min_jump: float, max_layers: int = 4) -> np.ndarray:
+    """(H, W) int32 layer of each pixel with depth (-1 without): the regions that depth edges
+    (:func:`depth_edges`) separate (holes of up to ~6 px, a sensor's dropouts, do not), edge
+    pixels joined to the nearest-depth neighbouring region; the ``max_layers`` - 1 largest
+    regions keep their own layer, the rest share one.  A window that sums over one layer
+    does not mix a surface with what is behind it."""
+    z = np.asarray(depth, np.float32)
+    known = np.isfinite(z)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    closed = cv2.morphologyEx(known.astype(np.uint8), cv2.MORPH_CLOSE, disc) > 0
+    # the small holes filled with the furthest depth around them, so that a hole band along a
+    # silhouette (a structured-light sensor's shadow) still shows the jump across it
+    far = cv2.dilate(np.where(known, z, 0).astype(np.float32), disc)
+    edge = depth_edges(np.where(known, z, np.where(closed, far, np.nan)), min_jump)
+    n, lab = cv2.connectedComponents((closed & ~edge).astype(np.uint8), connectivity=4)
+    lab = np.where(known, lab.astype(np.int32) - 1, -1)  # -1: no depth, or an edge pixel
+    todo = known & (lab < 0)
+    H, W = z.shape
+    for _ in range(3):                                   # edge pixels: nearest-depth neighbour
+        if not todo.any():
+            break
+        best = np.full(z.shape, np.inf, np.float32)
+        pick = np.full(z.shape, -1, np.int32)
+        zp = np.pad(np.where(known, z, np.nan), 1, constant_values=np.nan)
+        lp = np.pad(lab, 1, constant_values=-1)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy == dx == 0:
+                    continue
+                zn = zp[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+                ln = lp[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+                with np.errstate(invalid='ignore'):
+                    d = np.where(ln >= 0, np.abs(zn - z), np.inf)
+                better = todo & (d < best)
+                best[better], pick[better] = d[better], ln[better]
+        lab = np.where(todo & (pick >= 0), pick, lab)
+        todo = known & (lab < 0)
+    lab[todo] = n - 1                                    # edge pixels left: a region of theirs
+    sizes = np.bincount(lab[lab >= 0], minlength=n)
+    order = np.argsort(-sizes, kind='stable')
+    rank = np.empty(n, np.int32)
+    rank[order] = np.minimum(np.arange(n), max_layers - 1)
+    return np.where(lab >= 0, rank[np.maximum(lab, 0)], -1).astype(np.int32)
+
+
+def layered_highpass(gray: np.ndarray, layers: np.ndarray, sigma: float) -> np.ndarray:
+    """:func:`highpass` within each depth layer (``layers``, :func:`depth_layers`; -1: no
+    depth), so that a surface's structure image does not take in what is behind it."""
+    n = int(layers.max()) + 1 if layers.size else 0
+    if n <= 1 or sigma <= 0:
+        return highpass(gray, layers >= 0, sigma)
+    out = np.zeros(layers.shape, np.float32)
+    for k in range(n):
+        m = layers == k
+        out[m] = highpass(gray, m, sigma)[m]
+    return out
 
 
 def _check_K(K: np.ndarray) -> np.ndarray:
@@ -388,6 +479,40 @@ def _normals(V: np.ndarray) -> np.ndarray:
     return n
 
 
+def _layer_parts(layers: np.ndarray, rad: int) -> list[tuple[tuple[slice, slice], np.ndarray]]:
+    """Per depth layer (:func:`depth_layers`): its bounding box grown by ``rad`` (clipped to
+    the image) and its mask there, (h, w, 1) float32; [] for one layer or none."""
+    n = int(layers.max()) + 1 if layers.size else 0
+    if n <= 1:
+        return []
+    h, w = layers.shape
+    parts = []
+    for k in range(n):
+        m = layers == k
+        rows, cols = np.nonzero(m.any(1))[0], np.nonzero(m.any(0))[0]
+        if rows.size == 0:
+            continue
+        box = (slice(max(int(rows[0]) - rad, 0), min(int(rows[-1]) + rad + 1, h)),
+               slice(max(int(cols[0]) - rad, 0), min(int(cols[-1]) + rad + 1, w)))
+        parts.append((box, m[box][..., None].astype(np.float32)))
+    return parts
+
+
+def _layered_sum(buf: np.ndarray, parts: list, rad: int, sigma: float) -> np.ndarray:
+    """Gaussian-weighted window sums of ``buf`` (h, w, k) float32, each pixel's over the pixels
+    of its own depth layer only (``parts``, :func:`_layer_parts` with the same ``rad``; [] for
+    one layer: a plain blur); float64.  Each layer is blurred over its box only."""
+    ks = (2 * rad + 1, 2 * rad + 1)
+    if not parts:
+        return cv2.GaussianBlur(buf, ks, sigma).reshape(buf.shape).astype(np.float64)
+    out = np.zeros(buf.shape, np.float32)
+    for box, m in parts:
+        # BORDER_CONSTANT: outside the box is outside the layer (zero), not a replica
+        blur = cv2.GaussianBlur(buf[box] * m, ks, sigma, borderType=cv2.BORDER_CONSTANT)
+        out[box] += blur.reshape(m.shape[:2] + buf.shape[2:]) * m
+    return out.astype(np.float64)
+
+
 def _segment_slots(seg: np.ndarray, S: int) -> np.ndarray:
     """(S, n_max) indices of each segment's pixels, padded with len(seg) (a zero row)."""
     order = np.argsort(seg, kind='stable')
@@ -502,7 +627,7 @@ class MSF:
         self._seg_of0: np.ndarray | None = None   # (H, W) active-ref segment of each pixel
         # first-frame pixels with depth: flat indices, points (N, 3), photometric values (N,)
         # (the refinement works on their bounding box: slices, points, photometric values)
-        self._pix0: tuple[tuple[slice, slice], np.ndarray, np.ndarray] | None = None
+        self._pix0: tuple[tuple[slice, slice], np.ndarray, np.ndarray, np.ndarray] | None = None
         self._depth_noise = 0.0                   # m, of the first frame (depth_noise)
         self.reselections: list[int] = []
         self._frame = -1
@@ -531,12 +656,14 @@ class MSF:
                 ys, xs = np.nonzero(ok.any(1))[0], np.nonzero(ok.any(0))[0]
                 box = (slice(max(int(ys[0]) - rad, 0), int(ys[-1]) + rad + 1),
                        slice(max(int(xs[0]) - rad, 0), int(xs[-1]) + rad + 1))
-                self._pix0 = (box, self._X0[box].copy(), self._ref.hp[box].copy())
+                self._pix0 = (box, self._X0[box].copy(), self._ref.hp[box].copy(),
+                              depth_layers(z[box], self.cfg.smooth_depth_edge))
             return None
         if gray.shape != self._ref.labels.shape:
             raise ValueError(f'image: size {gray.shape} differs from the reference '
                              f'{self._ref.labels.shape}')
-        hp = highpass(gray, np.isfinite(z), self.cfg.highpass)
+        hp = layered_highpass(gray, depth_layers(z, self.cfg.smooth_depth_edge),
+                              self.cfg.highpass)
         levels = _pyramid(gray, z, self.K, self._first_level(gray.shape[1]), self.cfg.levels,
                           self.cfg.highpass)
         consistent = self._solve(levels)
@@ -568,7 +695,7 @@ class MSF:
     def _set_reference(self, gray: np.ndarray, z: np.ndarray) -> None:
         c = self.cfg
         labels = slic(gray, z, c.segments, c.compactness, c.slic_depth_scale)
-        hp = highpass(gray, np.isfinite(z), c.highpass)
+        hp = layered_highpass(gray, depth_layers(z, c.smooth_depth_edge), c.highpass)
         X = back_project(z, self.K)
         S = int(labels.max()) + 1
         pairs, blen = segment_graph(labels)
@@ -734,13 +861,17 @@ class MSF:
         Huber-weighted; their normal equations, linearised at each pixel's own D, are averaged
         over a Gaussian window (Lucas-Kanade in 3-D: a locally constant displacement), plus a
         weak prior towards the rigid prediction, which is all that is left where the pixel is
-        out of the image or behind a nearer surface (the rigid prediction's depth test).
+        out of the image or behind a nearer surface (the rigid prediction's depth test).  The
+        windows sum over the pixel's own depth layer of the first frame (:func:`depth_layers`:
+        not what is behind a silhouette); a sample near a depth edge of this frame has no
+        photometric nor depth term (its Sobel Jacobians straddle the edge); along the ray a
+        point keeps within RAY_CLAMP x ``max_depth_residual`` of its rigid prediction.
         Dense float32 arrays over the first frame's bounding box."""
         c = self.cfg
         if self._pix0 is None:
             return Y
         H, W = z.shape
-        box, X, I0 = self._pix0
+        box, X, I0, layers = self._pix0
         Yr = Y[box]
         ok = np.isfinite(Yr).all(-1) & np.isfinite(X).all(-1)
         if not ok.any():
@@ -753,13 +884,16 @@ class MSF:
                                                   self.K[1, 2]))
         known = np.isfinite(z)
         zf = np.where(known, z, 0).astype(np.float32)
-        nodepth = cv2.dilate((~known).astype(np.uint8), np.ones((3, 3), np.uint8))
+        edges = depth_edges(z, c.smooth_depth_edge)
+        nodepth = cv2.dilate(((~known) | edges).astype(np.uint8), np.ones((3, 3), np.uint8))
+        nearedge = cv2.dilate(edges.astype(np.uint8), np.ones((3, 3), np.uint8))
 
         def sobel(a: np.ndarray, dx: int, dy: int) -> np.ndarray:
             return cv2.Sobel(a, cv2.CV_32F, dx, dy, ksize=3, scale=1 / 8)
         exact = np.dstack([hp, zf])                  # sampled with exact weights
         approx = np.dstack([sobel(hp, 1, 0), sobel(hp, 0, 1), sobel(zf, 1, 0), sobel(zf, 0, 1),
-                            nodepth.astype(np.float32)])   # Jacobians, mask: cv2's bilinear
+                            nodepth.astype(np.float32), nearedge.astype(np.float32)])
+        # Jacobians and masks: cv2's bilinear
 
         def project(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             iz = 1 / np.maximum(P[..., 2], np.float32(1e-6))
@@ -775,6 +909,7 @@ class MSF:
         vis_I = vis & (px >= mg) & (px <= W - 1 - mg) & (py >= mg) & (py <= H - 1 - mg)
         wp = np.float32(1.0 / c.refine_prior ** 2)
         D = Dr.copy()
+        ray = X / np.maximum(np.linalg.norm(X, axis=-1, keepdims=True), np.float32(1e-9))
         sI, sD = np.float32(c.photometric_sigma), np.float32(c.depth_sigma)
         rad = int(np.ceil(2.5 * c.refine_window))
         hub = np.float32(c.huber)
@@ -786,6 +921,7 @@ class MSF:
         winD = float(np.clip(c.refine_window * self._depth_noise / c.depth_sigma,
                              min(c.refine_depth_window, c.refine_window), c.refine_window))
         radD = int(np.ceil(2.5 * winD))
+        parts, partsD = _layer_parts(layers, rad), _layer_parts(layers, radD)
         for _ in range(c.refine_iterations):
             P = X + D
             u, v, iz, inside = project(P)
@@ -801,6 +937,7 @@ class MSF:
             JD = (-dxf, -dyf, 1 / sD + dxf * xz + dyf * yz)
             rD = (P[..., 2] - ex[..., 1]) / sD
             okI = inside & vis_I & (u >= mg) & (u <= W - 1 - mg) & (v >= mg) & (v <= H - 1 - mg)
+            okI &= ap[..., 5] < 1e-3
             wI = (c.photometric_weight * okI) * np.minimum(1, hub / np.maximum(np.abs(rI), 1e-12))
             okD = inside & (ap[..., 4] < 1e-3) & (np.abs(rD) * sD < c.max_depth_residual)
             wD = (c.depth_weight * okD) * np.minimum(1, hub / np.maximum(np.abs(rD), 1e-12))
@@ -818,9 +955,8 @@ class MSF:
                     k += 1
                 buf[..., 6 + i] = tI * JI[i]
                 bufD[..., 6 + i] = tD * JD[i]
-            agg = cv2.GaussianBlur(buf, (2 * rad + 1, 2 * rad + 1), c.refine_window
-                                   ).astype(np.float64)
-            agg += cv2.GaussianBlur(bufD, (2 * radD + 1, 2 * radD + 1), winD)
+            agg = _layered_sum(buf, parts, rad, c.refine_window)
+            agg += _layered_sum(bufD, partsD, radD, winD)
             a00, a01, a02, a11, a12, a22 = (agg[..., i] for i in range(6))
             a00, a11, a22 = a00 + wp, a11 + wp, a22 + wp
             b = agg[..., 6:] + wp * Dr
@@ -831,6 +967,13 @@ class MSF:
                            c01 * b[..., 0] + c11 * b[..., 1] + c12 * b[..., 2],
                            c02 * b[..., 0] + c12 * b[..., 1] + c22 * b[..., 2]], -1)
                  / det[..., None]).astype(np.float32)
+        # beside a silhouette before a background, or in a sensor's hole, a window may hold no
+        # depth term, and then nothing fixes a point along its ray (the photometric term
+        # cannot): further from its segment's rigid motion along the ray than the segment
+        # solve's own outlier distance (x RAY_CLAMP) it keeps that motion's depth there
+        along = np.einsum('...i,...i->...', D - Dr, ray)
+        far = np.abs(along) > RAY_CLAMP * c.max_depth_residual
+        D = np.where(far[..., None], D - along[..., None] * ray, D)
         out = Y.copy()
         out[box] = np.where(ok[..., None], X + D, Y[box])
         return out
