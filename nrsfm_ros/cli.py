@@ -344,6 +344,9 @@ def _scene_flow_args(sf: argparse.ArgumentParser) -> None:
     sf.add_argument('--segments', type=int, default=SceneFlowParams().segments,
                     help='msf/icp: SLIC segments (default: the scene_flow node\'s, '
                     f'{SceneFlowParams().segments})')
+    sf.add_argument('--depth-scale', type=float, default=1000.0,
+                    help='depth PNG units per metre (default 1000: millimetres; 5000: the TUM '
+                    'RGB-D benchmark); 0 in a depth PNG is no depth')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -1163,9 +1166,13 @@ def read_rgbd_folder(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray], 
 
 def cmd_scene_flow(args: argparse.Namespace) -> int:
     from .core.sceneflow.msf import MSFConfig, dis_depth_flow, msf_sequence
-    colors, depths, K = read_rgbd_folder(Path(args.rgbd))
     if args.segments < 1:
         raise CliError(f'--segments {args.segments}: expected >= 1')
+    if not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
+        raise CliError(f'--depth-scale {args.depth_scale}: expected > 0 (units per metre)')
+    colors, depths, K = read_rgbd_folder(Path(args.rgbd))
+    depths = [np.where(d > 0, d.astype(np.float32) / np.float32(args.depth_scale), np.nan)
+              .astype(np.float32) for d in depths]
     if args.method == 'dis':
         flow, valid, st = dis_depth_flow(colors, depths, K)
     else:

@@ -269,6 +269,16 @@ def test_cli_scene_flow_folder_round_trip(tmp_path):
     gt = X0 @ T[2][:3, :3].T + T[2][:3, 3] - X0
     err = np.linalg.norm(d['flow'][1] - gt, axis=-1)[d['valid'][1]]
     assert d['valid'].mean() > 0.99 and err.mean() < 2e-3
+    # the same frames stored in the TUM RGB-D benchmark's units (5000 a metre)
+    for i, Ti in enumerate(T):
+        cv2.imwrite(str(tmp_path / 'depth' / f'{i:04d}.png'),
+                    np.rint(render_plane(Ti)[1] * 5000).astype(np.uint16))
+    assert main(['scene-flow', str(tmp_path), '--out', str(out), '--segments', '40',
+                 '--depth-scale', '5000']) == 0
+    d5 = np.load(out)
+    err5 = np.linalg.norm(d5['flow'][1] - gt, axis=-1)[d5['valid'][1]]
+    assert d5['valid'].mean() > 0.99 and err5.mean() < 2e-3
+    assert main(['scene-flow', str(tmp_path), '--out', str(out), '--depth-scale', '0']) == 2
     (tmp_path / 'intrinsics.txt').unlink()
     assert main(['scene-flow', str(tmp_path), '--out', str(out)]) == 2
 
