@@ -162,6 +162,18 @@ def test_depth_layers_split_a_surface_from_what_is_behind_it():
     s = _layered_sum(buf, _layer_parts(lab, 6), 6, 2.0)
     assert np.all(s[10:30, 15:40] == 0) and s[35, 50, 0] > 0.9
     assert _layer_parts(np.zeros_like(lab), 6) == []
+    # three layers (a second patch, in the wall's box): each pixel's sums over its own only
+    l3 = lab.copy()
+    l3[31:34, 45:51] = lab.max() + 1
+    rng = np.random.default_rng(3)
+    b3 = (rng.random((40, 60, 2)) * (l3 >= 0)[..., None]).astype(np.float32)  # 0: no layer
+    got = _layered_sum(b3, _layer_parts(l3, 6), 6, 2.0)
+    inner = np.zeros(l3.shape, bool)
+    inner[6:-6, 6:-6] = True                # the image border: the plain blur's reflection
+    for k in np.unique(l3[l3 >= 0]):
+        want = cv2.GaussianBlur(b3 * (l3 == k)[..., None], (13, 13), 2.0)
+        m = inner & (l3 == k)
+        assert m.sum() >= 18 and np.allclose(got[m], want[m], atol=1e-5)
     assert np.allclose(_layered_sum(buf, [], 6, 2.0),
                        cv2.GaussianBlur(buf, (13, 13), 2.0)[..., None], atol=1e-6)
 

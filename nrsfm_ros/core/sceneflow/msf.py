@@ -480,17 +480,18 @@ def _normals(V: np.ndarray) -> np.ndarray:
 
 
 def _layer_parts(layers: np.ndarray, rad: int) -> list[tuple[tuple[slice, slice], np.ndarray]]:
-    """Per depth layer (:func:`depth_layers`): its bounding box grown by ``rad`` (clipped to
-    the image) and its mask there, (h, w, 1) float32; [] for one layer or none."""
+    """Per depth layer (:func:`depth_layers`) but the largest: its bounding box grown by
+    ``rad`` (clipped to the image) and its mask there, (h, w, 1) float32; [] for one layer."""
     n = int(layers.max()) + 1 if layers.size else 0
     if n <= 1:
         return []
     h, w = layers.shape
+    big = int(np.argmax(np.bincount(layers[layers >= 0], minlength=n)))
     parts = []
     for k in range(n):
         m = layers == k
         rows, cols = np.nonzero(m.any(1))[0], np.nonzero(m.any(0))[0]
-        if rows.size == 0:
+        if k == big or rows.size == 0:
             continue
         box = (slice(max(int(rows[0]) - rad, 0), min(int(rows[-1]) + rad + 1, h)),
                slice(max(int(cols[0]) - rad, 0), min(int(cols[-1]) + rad + 1, w)))
@@ -500,16 +501,23 @@ def _layer_parts(layers: np.ndarray, rad: int) -> list[tuple[tuple[slice, slice]
 
 def _layered_sum(buf: np.ndarray, parts: list, rad: int, sigma: float) -> np.ndarray:
     """Gaussian-weighted window sums of ``buf`` (h, w, k) float32, each pixel's over the pixels
-    of its own depth layer only (``parts``, :func:`_layer_parts` with the same ``rad``; [] for
-    one layer: a plain blur); float64.  Each layer is blurred over its box only."""
+    of its own depth layer only (``parts``: :func:`_layer_parts` with the same ``rad``, every
+    layer but the largest; []: one layer; ``buf`` zero where no layer is); float64.  The
+    largest layer's sums are the whole image's less the other layers' (each of those blurred
+    over its own box only)."""
     ks = (2 * rad + 1, 2 * rad + 1)
+    out = cv2.GaussianBlur(buf, ks, sigma).reshape(buf.shape)
     if not parts:
-        return cv2.GaussianBlur(buf, ks, sigma).reshape(buf.shape).astype(np.float64)
-    out = np.zeros(buf.shape, np.float32)
+        return out.astype(np.float64)
+    own = []
     for box, m in parts:
         # BORDER_CONSTANT: outside the box is outside the layer (zero), not a replica
-        blur = cv2.GaussianBlur(buf[box] * m, ks, sigma, borderType=cv2.BORDER_CONSTANT)
-        out[box] += blur.reshape(m.shape[:2] + buf.shape[2:]) * m
+        blur = cv2.GaussianBlur(buf[box] * m, ks, sigma, borderType=cv2.BORDER_CONSTANT
+                                ).reshape(m.shape[:2] + buf.shape[2:])
+        out[box] -= blur
+        own.append((box, m, blur))
+    for box, m, blur in own:                       # the smaller layers' own pixels
+        out[box] = np.where(m > 0, blur, out[box])
     return out.astype(np.float64)
 
 
