@@ -481,7 +481,7 @@ def _normals(V: np.ndarray) -> np.ndarray:
 
 def _layer_parts(layers: np.ndarray, rad: int) -> list[tuple[tuple[slice, slice], np.ndarray]]:
     """Per depth layer (:func:`depth_layers`) but the largest: its bounding box grown by
-    ``rad`` (clipped to the image) and its mask there, (h, w, 1) float32; [] for one layer."""
+    ``rad`` (clipped to the image) and its mask there, (h, w, 1) bool; [] for one layer."""
     n = int(layers.max()) + 1 if layers.size else 0
     if n <= 1:
         return []
@@ -495,7 +495,7 @@ def _layer_parts(layers: np.ndarray, rad: int) -> list[tuple[tuple[slice, slice]
             continue
         box = (slice(max(int(rows[0]) - rad, 0), min(int(rows[-1]) + rad + 1, h)),
                slice(max(int(cols[0]) - rad, 0), min(int(cols[-1]) + rad + 1, w)))
-        parts.append((box, m[box][..., None].astype(np.float32)))
+        parts.append((box, m[box][..., None]))
     return parts
 
 
@@ -512,12 +512,13 @@ def _layered_sum(buf: np.ndarray, parts: list, rad: int, sigma: float) -> np.nda
     own = []
     for box, m in parts:
         # BORDER_CONSTANT: outside the box is outside the layer (zero), not a replica
-        blur = cv2.GaussianBlur(buf[box] * m, ks, sigma, borderType=cv2.BORDER_CONSTANT
-                                ).reshape(m.shape[:2] + buf.shape[2:])
+        blur = cv2.GaussianBlur(np.where(m, buf[box], np.float32(0)), ks, sigma,
+                                borderType=cv2.BORDER_CONSTANT).reshape(m.shape[:2]
+                                                                        + buf.shape[2:])
         out[box] -= blur
         own.append((box, m, blur))
     for box, m, blur in own:                       # the smaller layers' own pixels
-        out[box] = np.where(m > 0, blur, out[box])
+        np.copyto(out[box], blur, where=m)
     return out.astype(np.float64)
 
 
