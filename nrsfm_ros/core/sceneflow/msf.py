@@ -12,9 +12,11 @@ by damped Gauss-Newton on
 (rho: Huber by IRLS weights), coarse to fine over an image pyramid, with se(3) increments and a
 sparse 6S x 6S normal-equation solve.  Frames are processed from the reference to every later
 frame, each warm-started from the previous one; when too little of the reference stays
-consistent a new reference is selected and the flow is chained through it.  The output is the
-camera-frame flow ``X_c - X_ref`` of every reference pixel with depth (see
-:mod:`.definition`), NaN elsewhere.
+consistent a new reference is selected and the flow is chained through it.  A per-pixel
+refinement then moves each pixel off its segment's motion (``MSF._refine``), its windows and
+high-pass images within the pixel's depth layer (:func:`depth_layers`: a surface is not mixed
+with what lies behind its silhouette).  The output is the camera-frame flow ``X_c - X_ref`` of
+every reference pixel with depth (see :mod:`.definition`), NaN elsewhere.
 
 Baselines of the benchmark: :func:`dis_depth_flow` (DIS optical flow + depth back-projection)
 and per-segment ICP (``MSFConfig(photometric_weight=0, smoothness=0)``).
