@@ -1,5 +1,5 @@
 """Deterministic synthetic sequences with ground truth: a deforming textured surface (waving
-flag, face-like cap, isometrically bending sheet or breathing sphere cap) seen by a moving pinhole
+flag, face-like cap, isometrically bending sheet, breathing sphere cap or peristaltic tube) seen by a moving pinhole
 camera, optionally with an opaque textured occluder sweeping across between camera and surface
 and a textured wall behind it (still in the world: its image moves with the camera only).
 
@@ -22,12 +22,15 @@ import numpy as np
 
 from ._raster_kernel import zbuffer
 
-SURFACES = ('flag', 'face', 'sheet', 'sphere')
+SURFACES = ('flag', 'face', 'sheet', 'sphere', 'tube')
 SPHERE_RADIUS = 0.3                   # sphere cap: rest radius (m) and polar half-angle
 SPHERE_HALF_ANGLE = np.radians(70.0)  # a 140 deg arc of the sphere
+TUBE_RADIUS = 0.2                     # tube: rest radius (m), length (m) and the half-angle of
+TUBE_LENGTH = 0.9                     # the arc round its axis that faces the camera
+TUBE_HALF_ANGLE = np.radians(70.0)
 # object width (m) the focal length is set for: the surface fills ~75% of the image width
 EXTENT = {'flag': 1.0, 'face': 0.5, 'sheet': 1.0,
-          'sphere': 2 * SPHERE_RADIUS * float(np.sin(SPHERE_HALF_ANGLE))}
+          'sphere': 2 * SPHERE_RADIUS * float(np.sin(SPHERE_HALF_ANGLE)), 'tube': TUBE_LENGTH}
 MIN_DISTANCE = 1.5                    # m: every surface (and the occluder) in front of the camera
 MAX_AMPLITUDE = 4.0
 OCCLUDER_AREA = 0.3                   # occluder disc area / the surface's area in frame 0
@@ -147,6 +150,8 @@ def _surface(kind: str, s: np.ndarray, t: np.ndarray, tau: float, amp: float,
         return _sheet(s, t, tau, amp, phase)
     if kind == 'sphere':
         return _sphere(s, t, tau, amp, phase)
+    if kind == 'tube':
+        return _tube(s, t, tau, amp, phase)
     if kind == 'flag':
         x = (s - 0.5) * 1.0
         y = (t - 0.5) * 0.7
@@ -228,8 +233,24 @@ def _sphere(s: np.ndarray, t: np.ndarray, tau: float, amp: float,
     return r[:, None] * d + [0.0, 0.0, centre_z]
 
 
+def _tube(s: np.ndarray, t: np.ndarray, tau: float, amp: float,
+          phase: np.ndarray) -> np.ndarray:
+    """A bowel-like tube: the 140 deg of a 0.2 m radius, 0.9 m long cylinder about the x axis
+    that face the camera, with a peristaltic wave (the radius +-12% amp) travelling along it
+    and the axis bending slowly in the y-z plane (amp 0: a rigid half-tube).  s runs along the
+    axis, t round it."""
+    x = (s - 0.5) * TUBE_LENGTH
+    theta = (t - 0.5) * 2 * TUBE_HALF_ANGLE
+    wave = np.sin(2 * np.pi * (1.2 * s - 0.35 * tau) + phase[0])
+    r = TUBE_RADIUS * (1 + amp * 0.12 * wave)
+    bend = amp * 0.04 * np.sin(2 * np.pi * 0.15 * tau + phase[1]) * (2 * s - 1) ** 2
+    centre_z = TUBE_RADIUS * (1 + np.cos(TUBE_HALF_ANGLE)) / 2   # the crest and rims at -/+ z
+    return np.stack([x, r * np.sin(theta) + 0.5 * bend, -r * np.cos(theta) + centre_z + bend],
+                    axis=1)
+
+
 def _in_domain(kind: str, s: np.ndarray, t: np.ndarray) -> np.ndarray:
-    if kind in ('flag', 'sheet'):
+    if kind in ('flag', 'sheet', 'tube'):
         return np.ones_like(s, dtype=bool)
     return ((s - 0.5) / 0.5) ** 2 + ((t - 0.5) / 0.5) ** 2 <= 0.98
 
