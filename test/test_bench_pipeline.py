@@ -2,22 +2,19 @@
 the true cameras given) on small renders with known answers; --periodic: the cases' renders."""
 from __future__ import annotations
 
-import importlib
 import sys
-from pathlib import Path
 
 import pytest
 
 from nrsfm_ros.evaluation import depth_reflected_frames, score, shapes_as_clouds, stream_on_tracks
 from nrsfm_ros.io.synth import SynthConfig, generate
+from tests_helpers import bench_module
 
-BENCH = Path(__file__).resolve().parent.parent / 'bench'
 
 
 @pytest.fixture
 def bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    yield importlib.import_module('bench_pipeline')
+    yield bench_module(monkeypatch, 'bench_pipeline')
     sys.modules.pop('bench_pipeline', None)
 
 
@@ -119,14 +116,13 @@ def test_true_depth_bound_removes_the_perspective_of_a_close_camera(bench):
     assert bound < 0.01 and bound < 0.1 * weak, (bound, weak)     # measured 0.002 vs 0.059
 
 
-def test_study_planar_perspective_refinement_beats_the_perspective_step():
+def test_study_planar_perspective_refinement_beats_the_perspective_step(monkeypatch):
     """The study of issue 12's next step (bench/study_planar_perspective.py): the planar model
     refined under the pinhole camera (rank-2 heights by alternating least squares) on the
     ground-truth tracks of a flag seen with a 45 deg field of view (96x72, 20 frames) is well
     below the stream's perspective step and at the true-depth bound (measured 0.037 against
     0.090, bound 0.038), with a lower pinhole reprojection error."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / 'bench'))
-    study = importlib.import_module('study_planar_perspective')
+    study = bench_module(monkeypatch, 'study_planar_perspective')
     r = study.run_case('flag:30:1:1.6', 8, 2, (96, 72), 20)
     assert r['refined'] < 0.6 * r['step'] and r['refined'] < 1.2 * r['true_depths'], r
     assert r['refined_px'] < r['step_px'] and r['refined'] < r['static'], r

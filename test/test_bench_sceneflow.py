@@ -2,20 +2,16 @@
 kinect``) and the wall behind the surface (``--background on``) at a given ``--distance``."""
 from __future__ import annotations
 
-import importlib
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parent.parent / 'bench'
+from tests_helpers import bench_module
 
 
 @pytest.fixture
 def bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    yield importlib.import_module('bench_sceneflow')
+    yield bench_module(monkeypatch, 'bench_sceneflow')
     sys.modules.pop('bench_sceneflow', None)
 
 

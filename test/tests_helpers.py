@@ -47,3 +47,12 @@ def reflected_frames_of_a_periodic_flag(mode: str, frames: int = 90, batch: int 
         g = seq.S[sh.index][[col[int(i)] for i in sh.ids], 2]
         reflected.append(float((sh.X[:, 2] - sh.X[:, 2].mean()) @ (g - g.mean())) < 0)
     return reflected
+
+
+def bench_module(monkeypatch, name: str):
+    """A script of ``bench/`` imported as a module (its folder on sys.path for this test; the
+    caller pops it from sys.modules after)."""
+    import importlib
+    from pathlib import Path
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / 'bench'))
+    return importlib.import_module(name)
