@@ -1,7 +1,8 @@
 """Deterministic synthetic sequences with ground truth: a deforming textured surface (waving
-flag, face-like cap, isometrically bending sheet, breathing sphere cap or peristaltic tube) seen by a moving pinhole
-camera, optionally with an opaque textured occluder sweeping across between camera and surface
-and a textured wall behind it (still in the world: its image moves with the camera only).
+flag, face-like cap, isometrically bending sheet, breathing sphere cap or peristaltic tube)
+seen by a moving pinhole camera, optionally with an opaque textured occluder sweeping across
+between camera and surface and a textured wall behind it (still in the world: its image moves
+with the camera only).
 
 Per frame: an rgb8 image rendered by a vectorised triangle rasteriser (z-buffer, bilinear texture,
 Lambertian shading), a depth image (32FC1 metres, NaN off the surface and the occluder, the
