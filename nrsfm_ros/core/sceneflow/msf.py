@@ -604,6 +604,7 @@ class _Ref:
     pair_w: np.ndarray                    # (E,)
     pair_pts: np.ndarray                  # (E, 3, 3): 3 points per pair (reference frame)
     hp: np.ndarray                        # (H, W) the photometric image (highpass)
+    layers: np.ndarray | None = None      # (H, W) its depth layers (depth_layers)
     # per level: (X (N,3), I (N,), seg (N,), slots (S, n_max) of each segment's pixels (N: none),
     # photometric ok (N,): away from the image border)
     level_pix: list = field(default_factory=list)
@@ -668,7 +669,7 @@ class MSF:
                 box = (slice(max(int(ys[0]) - rad, 0), int(ys[-1]) + rad + 1),
                        slice(max(int(xs[0]) - rad, 0), int(xs[-1]) + rad + 1))
                 self._pix0 = (box, self._X0[box].copy(), self._ref.hp[box].copy(),
-                              depth_layers(z[box], self.cfg.smooth_depth_edge))
+                              self._ref.layers[box].copy())
             return None
         if gray.shape != self._ref.labels.shape:
             raise ValueError(f'image: size {gray.shape} differs from the reference '
@@ -706,7 +707,8 @@ class MSF:
     def _set_reference(self, gray: np.ndarray, z: np.ndarray) -> None:
         c = self.cfg
         labels = slic(gray, z, c.segments, c.compactness, c.slic_depth_scale)
-        hp = layered_highpass(gray, depth_layers(z, c.smooth_depth_edge), c.highpass)
+        layers = depth_layers(z, c.smooth_depth_edge)
+        hp = layered_highpass(gray, layers, c.highpass)
         X = back_project(z, self.K)
         S = int(labels.max()) + 1
         pairs, blen = segment_graph(labels)
@@ -724,7 +726,7 @@ class MSF:
         pts = np.stack([a, b, mid + off], 1) if len(pairs) else np.empty((0, 3, 3))
         dz = np.abs(a[:, 2] - b[:, 2])
         w = 1.0 / (1.0 + (dz / c.smooth_depth_edge) ** 2)
-        ref = _Ref(labels, X, S, pairs, w, pts, hp, index=self._frame)
+        ref = _Ref(labels, X, S, pairs, w, pts, hp, layers=layers, index=self._frame)
         ref.hess = _hessian_pattern(S, pairs if c.smoothness > 0 else pairs[:0])
         E = len(pairs)
         ref.inc = tuple(sp.csr_matrix((np.ones(E), (pairs[:, k], np.arange(E))), shape=(S, E))
