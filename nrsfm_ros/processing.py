@@ -528,7 +528,8 @@ class ReconstructorProcessor(Processor):
         to the pinhole image decided (``pinhole_signs``), batch frames published with their
         depths reflected to agree with the perspective image (``reflected_frames``), the
         tracks the last solve left out as seen in too few of its frames (``min_seen``:
-        ``tracks_left_out``), the last batch solve's method (what ``auto`` chose); dspr:
+        ``tracks_left_out``), batches solved as halves (``batch_splits``: their tracks seen in
+        too few of their frames), the last batch solve's method (what ``auto`` chose); dspr:
         compression (frames / stored states) and tracks new since the prior; spva: the frames
         (of the first batch) its shape prior was built from."""
         s = self.stream
@@ -536,7 +537,8 @@ class ReconstructorProcessor(Processor):
                'pinhole_refinements': str(s.pinhole_refinements),
                'pinhole_signs': str(s.pinhole_signs),
                'reflected_frames': str(s.reflected_frames),
-               'tracks_left_out': str(s.tracks_left_out)}
+               'tracks_left_out': str(s.tracks_left_out),
+               'batch_splits': str(s.batch_splits)}
         if s.last_method:
             out['last_method'] = s.last_method
         if self.params.mode == 'dspr':

@@ -565,3 +565,26 @@ def test_online_keeps_its_basis_past_tracks_its_window_left_out(face, monkeypatc
     assert len(solves) == 1
     assert all(np.isin(sh.ids, ids).all() for sh in got)
 
+
+def test_a_fragmented_batch_is_solved_in_halves_and_loses_no_frame(face):
+    """A batch whose tracks are each seen in few of its frames (the visible side turning away:
+    here each track is seen in one quarter of the batch, the quarters overlapping by a frame) is
+    solved as halves in turn, down to parts of MIN_PART_FRAMES; a batch whose tracks are seen
+    throughout is solved whole.  Every frame is published once, in order, either way."""
+    from nrsfm_ros.core.nrsfm import stream as st
+    d, ids = face
+    F = 24
+    V = np.zeros((F, ids.size))
+    for q in range(4):                                   # tracks q::4 seen in quarter q
+        V[max(0, 6 * q - 1):6 * q + 7, q::4] = 1.0
+    s = StreamNRSfM(mode='batch', batch_frames=F)
+    got = []
+    for f in range(F):
+        vis = V[f] > 0
+        got += [sh.index for sh in s.push(ids[vis], d['W'][2 * f:2 * f + 2, vis].T, V[f, vis])]
+    got += [sh.index for sh in s.flush()]
+    assert F // 2 < 2 * st.MIN_PART_FRAMES <= F          # one split: halves of 12 frames
+    assert got == list(range(F)) and s.batch_splits == 1
+    whole = StreamNRSfM(mode='batch', batch_frames=F)
+    n = sum(len(whole.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])) for f in range(F))
+    assert n == F and whole.batch_splits == 0

@@ -279,7 +279,13 @@ def test_malformed_messages_interleaved_with_bag_live(rclpy_context, small_bag):
     graph = Graph(['tracker', 'reconstructor', 'scene_flow'],
                   overrides={'tracker': {'reliable': True, 'publish_flow': False,
                                          'queue_policy': 'keep_all'},
-                             'reconstructor': {'window': 5, 'queue_policy': 'keep_all'},
+                             # no cloud out while the test runs (a batch longer than the
+                             # ~160 frames the tracker makes of valid frames and valid
+                             # mutations, no idle flush): its clouds would reach scene_flow
+                             # beside the test's own nrsfm/points, which the count is of
+                             'reconstructor': {'batch_seconds': 0.0, 'batch_frames': 300,
+                                               'queue_policy': 'keep_all',
+                                               'idle_flush_s': 0.0},
                              'scene_flow': {'queue_policy': 'keep_all'}}, quiet=True)
     probe = Probe(rclpy_context, {'nrsfm/tracks': 'sensor_msgs/msg/PointCloud2',
                                   'scene_flow/points': 'sensor_msgs/msg/PointCloud2'})
@@ -325,8 +331,12 @@ def test_malformed_messages_interleaved_with_bag_live(rclpy_context, small_bag):
         assert wait_until(lambda: len(probe.got['nrsfm/tracks']) >= valid_frames, 30)
 
         def counted(node: str, inputs: int) -> bool:
+            # every input received or dropped, and every one received handled (the last
+            # diagnostics may be sent while a message is still in the node's hands)
             d = probe.last(node)
-            return d is not None and int(d['received']) + int(d['dropped']) >= inputs
+            return d is not None and int(d['received']) + int(d['dropped']) >= inputs and \
+                int(d['processed']) + int(d['malformed']) + int(d['failed']) >= \
+                int(d['received'])
         n_track = valid_frames + sent['camera/image_raw']
         n_flow = sent['nrsfm/points']
         assert wait_until(lambda: counted('tracker', n_track) and counted('scene_flow', n_flow),
@@ -342,5 +352,5 @@ def test_malformed_messages_interleaved_with_bag_live(rclpy_context, small_bag):
                                    ('tracker', 'reconstructor', 'scene_flow')})
     finally:
         probe.close()
-        codes = graph.stop()
+        codes = graph.stop(timeout=30.0)     # the reconstructor solves its batch
     assert all(c in (0, -signal.SIGINT) for c in codes.values()), codes

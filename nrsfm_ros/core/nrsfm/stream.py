@@ -74,6 +74,11 @@ REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tra
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 MIN_SEEN = 0.7            # a batch's track is solved where seen in this share of its frames
 MIN_SEEN_TRACKS = 100     # min_seen applies where it keeps at least this many tracks
+FRAGMENTED_SHARE = 0.1    # _fragmented: a batch is halved where fewer of its tracks are seen in
+#   min_seen of its frames (the 60 deg occluded cap 0.2%, a tube's far side 0.3-2.4%; the
+#   other face / cap batches 100%): the cap 0.297 -> 0.204, the tube at 60 deg
+#   0.59-0.74 -> 0.11-0.32 (BENCHMARKS, issue 12, session 47)
+MIN_PART_FRAMES = 10      # _fragmented: not halved into parts shorter than this
 NEW_TRACK_NEIGHBOURS = 4  # dspr: a track new since the prior takes its neighbours' depth
 BATCH_MAX_TRACKS = 10000  # batch solves run on at most this many spread tracks, extended to all
 BMM_RIGID_RATIO = 0.5     # auto: bmm's reprojection residual over rigid's above which the rigid
@@ -387,6 +392,7 @@ class StreamNRSfM:
         self.reflected_frames = 0        # batch frames reflected by _frame_reflections
         self.perspective_solves = 0      # batch solves where the perspective model won
         self.pinhole_refinements = 0     # planar batch solves refined under the pinhole camera
+        self.batch_splits = 0            # batches solved as two halves (_fragmented)
         self.pinhole_signs = 0           # first batches whose depth sign a pinhole fit decided
         self.last_method = ''            # the method of the last batch solve (auto's choice)
         if not (np.isfinite(min_seen) and 0 <= min_seen <= 1):
@@ -617,13 +623,16 @@ class StreamNRSfM:
         # perspective_error call of a batch then copied the whole tracks)
         return all_ids[keep], np.compress(keep, W, axis=1), np.compress(keep, V, axis=1)
 
-    def _batch_tracks(self, frames: list[_Frame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_tracks`` less those seen in fewer than ``min_seen`` of the frames that report
-        them, where at least ``MIN_SEEN_TRACKS`` remain (``tracks_left_out`` counts them), in
-        modes ``batch`` and ``dspr`` (whose frames after the prior leave the same ids out:
-        taken at their neighbours' depth as new tracks they cost the periodic cap 0.043 ->
-        0.050; left out, 0.032); ``spva``'s prior term fills what an occluder hides."""
-        ids, W, V = self._tracks(frames)
+    def _batch_tracks(self, frames: list[_Frame],
+                      tracks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_tracks`` (or ``tracks``, already assembled for ``frames``) less those seen in
+        fewer than ``min_seen`` of the frames that report them, where at least
+        ``MIN_SEEN_TRACKS`` remain (``tracks_left_out`` counts them), in modes ``batch`` and
+        ``dspr`` (whose frames after the prior leave the same ids out: taken at their
+        neighbours' depth as new tracks they cost the periodic cap 0.043 -> 0.050; left out,
+        0.032); ``spva``'s prior term fills what an occluder hides."""
+        ids, W, V = self._tracks(frames) if tracks is None else tracks
         self.tracks_left_out, self._left_out = 0, np.empty(0, ids.dtype)
         if self.mode not in ('batch', 'dspr') or self.min_seen <= 0:
             return ids, W, V
@@ -651,8 +660,27 @@ class StreamNRSfM:
             self._known = sorted_unique(np.concatenate([f.ids for f in frames]))
         return out
 
+    def _fragmented(self, frames: list[_Frame], V: np.ndarray) -> bool:
+        """A ``batch`` whose tracks are each seen in few of its frames (under
+        ``FRAGMENTED_SHARE`` of them in ``min_seen`` of the batch's frames: a surface whose
+        visible side turns away, the tracker's reference re-selected inside the batch), long
+        enough to halve into parts of at least ``MIN_PART_FRAMES``: one factorisation of it
+        is ill-posed (the 60 deg occluded cap: rigid's cameras turn 133 deg where the truth's
+        turn 74).  ``V``: the visibility of the frames' tracks (``_tracks``)."""
+        if self.mode != 'batch' or len(frames) < 2 * MIN_PART_FRAMES or self.min_seen <= 0:
+            return False
+        often = (V >= 0.5).sum(axis=0) >= self.min_seen * V.shape[0]
+        return bool(V.shape[1]) and float(often.mean()) < FRAGMENTED_SHARE
+
     def _solve_batch(self, frames: list[_Frame], spva: bool = False) -> list[StreamShape]:
-        ids, W, V = self._batch_tracks(frames)
+        tracks = self._tracks(frames)
+        if not spva and self._fragmented(frames, tracks[2]):
+            # solved as two halves in turn, each published (and so each in the stream's gauge)
+            # before the next: each half's tracks are seen in more of its frames
+            half = len(frames) // 2
+            self.batch_splits += 1
+            return self._solve_batch(frames[:half]) + self._solve_batch(frames[half:])
+        ids, W, V = self._batch_tracks(frames, tracks)
         if len(frames) == 2:
             res = self._safe(lambda: low_rank(W, V, rank=1), W, V, frames)
         else:
@@ -660,7 +688,8 @@ class StreamNRSfM:
         res = self._frame_reflections(res, W, V)
         if spva and res.method != 'flat':
             res = self._spva_prior(ids, W, V, res)
-        out = self._emit(frames, ids, res, list(self._pending))
+        indices = {f.index for f in frames}
+        out = self._emit(frames, ids, res, [f for f in self._pending if f.index in indices])
         if spva and self.prior is not None and self._prior_G is None:
             self._prior_G = self._last_G    # the prior's object frame is this batch's
         self._batch_last = (ids, res, self._flip)
