@@ -588,3 +588,25 @@ def test_a_fragmented_batch_is_solved_in_halves_and_loses_no_frame(face):
     whole = StreamNRSfM(mode='batch', batch_frames=F)
     n = sum(len(whole.push(ids, d['W'][2 * f:2 * f + 2].T, d['V'][f])) for f in range(F))
     assert n == F and whole.batch_splits == 0
+
+
+def test_dspr_builds_its_prior_from_the_last_half_of_a_fragmented_first_batch(face):
+    """dspr's first batch, fragmented as above, is solved in halves like ``batch``'s; its prior
+    then holds the last half's tracks, and the frames after the batch (seeing those tracks)
+    are each published once, in order, through the prior."""
+    d, ids = face
+    F, extra = 24, 6
+    V = np.zeros((F + extra, ids.size))
+    for q in range(4):
+        V[max(0, 6 * q - 1):6 * q + 7, q::4] = 1.0
+    V[F:, 3::4] = 1.0                                    # later frames: the last quarter's
+    s = StreamNRSfM(mode='dspr', batch_frames=F)
+    got = []
+    for f in range(F + extra):
+        vis = V[f] > 0
+        got += [sh.index for sh in s.push(ids[vis], d['W'][2 * f:2 * f + 2, vis].T, V[f, vis])]
+    got += [sh.index for sh in s.flush()]
+    assert got == list(range(F + extra)) and s.batch_splits == 1
+    assert s.prior is not None
+    last_half = np.flatnonzero((V[F // 2:F] > 0).any(axis=0))
+    assert np.isin(s._prior_ids, ids[last_half]).all()

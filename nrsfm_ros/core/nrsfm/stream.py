@@ -661,13 +661,14 @@ class StreamNRSfM:
         return out
 
     def _fragmented(self, frames: list[_Frame], V: np.ndarray) -> bool:
-        """A ``batch`` whose tracks are each seen in few of its frames (under
-        ``FRAGMENTED_SHARE`` of them in ``min_seen`` of the batch's frames: a surface whose
+        """A ``batch`` (or ``dspr``'s first) whose tracks are each seen in few of its frames
+        (under ``FRAGMENTED_SHARE`` of them in ``min_seen`` of the batch's frames: a surface whose
         visible side turns away, the tracker's reference re-selected inside the batch), long
         enough to halve into parts of at least ``MIN_PART_FRAMES``: one factorisation of it
         is ill-posed (the 60 deg occluded cap: rigid's cameras turn 133 deg where the truth's
         turn 74).  ``V``: the visibility of the frames' tracks (``_tracks``)."""
-        if self.mode != 'batch' or len(frames) < 2 * MIN_PART_FRAMES or self.min_seen <= 0:
+        if self.mode not in ('batch', 'dspr') or len(frames) < 2 * MIN_PART_FRAMES or \
+                self.min_seen <= 0:
             return False
         often = (V >= 0.5).sum(axis=0) >= self.min_seen * V.shape[0]
         return bool(V.shape[1]) and float(often.mean()) < FRAGMENTED_SHARE
@@ -676,7 +677,10 @@ class StreamNRSfM:
         tracks = self._tracks(frames)
         if not spva and self._fragmented(frames, tracks[2]):
             # solved as two halves in turn, each published (and so each in the stream's gauge)
-            # before the next: each half's tracks are seen in more of its frames
+            # before the next: each half's tracks are seen in more of its frames; dspr's prior
+            # then comes from the last half (the tracks later frames still see).  Not spva's
+            # (all tracks, its prior term filling the rest): the held-out tube at 60 deg
+            # behind the occluder 0.162 -> 0.274 (BENCHMARKS, issue 13, session 48)
             half = len(frames) // 2
             self.batch_splits += 1
             return self._solve_batch(frames[:half]) + self._solve_batch(frames[half:])
