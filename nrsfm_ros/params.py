@@ -275,7 +275,9 @@ class ReconstructorParams(Params):
                            'least this share of the batch frames that report it: one lost most '
                            'of the time (a textured background sliding behind the surface, '
                            'the rim) has depths the batch does not observe; the status '
-                           'tracks_left_out counts them (0: every track seen in 2 frames)')
+                           'tracks_left_out counts them (0: every track seen in 2 frames); '
+                           'spva: at most 0.3 of them (its prior fills what an occluder '
+                           'hides), none where most tracks are seen in few frames')
     rank: int = rule(2, _at_least(1), "shape basis rank K (window mode, lowrank, auto's "
                      'rigid basis in batch mode)')
     iterations: int = rule(10, _at_least(1), 'alternation iterations per window (warm-started)')

@@ -61,13 +61,31 @@ def test_background_tracks_are_left_out_counted_and_the_surface_gains(scene):
     assert e['e3d'] < 0.6 * min(e['static'], e['flat']), e
 
 
-def test_spva_keeps_every_track(scene):
-    """spva's prior term fills what an occluder hides: its first batch keeps the rarely seen
-    tracks too."""
+def test_spva_leaves_out_only_the_rarely_seen_tracks_and_none_of_a_fragmented_batch(scene):
+    """spva's prior term fills what an occluder hides, so its first batch keeps a track seen
+    in 40% of the frames that report it (batch's min_seen 0.7 leaves it out), but leaves out
+    those seen in fewer than SPVA_MIN_SEEN (the background's 4 of 30 frames), and the
+    surface gains; a fragmented batch (each track seen in a quarter of it) keeps them all."""
+    from nrsfm_ros.core.nrsfm.stream import SPVA_MIN_SEEN
     W, V, S, ids = scene
-    s, clouds = _run(W, V, ids, mode='spva')
-    assert s.tracks_left_out == 0
-    assert np.array_equal(clouds[0][1], ids)
+    Vh = V.copy()
+    Vh[:18, :40] = 0.0                              # 40 surface tracks hidden in 18 of 30
+    assert 4 / F < SPVA_MIN_SEEN < 12 / F < 0.7
+    s, clouds = _run(W, Vh, ids, mode='spva')
+    assert s.tracks_left_out == Q
+    assert all(np.array_equal(got, ids[:P]) for _, got in clouds.values())
+    sb, _ = _run(W, Vh, ids, mode='batch')
+    assert sb.tracks_left_out == Q + 40
+    s0, clouds0 = _run(W, Vh, ids, mode='spva', min_seen=0.0)
+    assert s0.tracks_left_out == 0
+    e = score_stream(clouds, ids[:P], S).summary()['e3d']
+    e0 = score_stream(clouds0, ids[:P], S).summary()['e3d']
+    assert e < 0.8 * e0, (e, e0)
+    Vq = np.zeros_like(V)
+    for q in range(4):                              # tracks q::4 seen in quarter q
+        Vq[max(0, 7 * q - 1):7 * q + 9, q::4] = 1.0
+    sq, _ = _run(W, Vq, ids, mode='spva')
+    assert sq.tracks_left_out == 0
 
 
 def test_dspr_leaves_the_same_tracks_out_of_its_frames_after_the_prior(scene):

@@ -74,6 +74,12 @@ REBASE_FRACTION = 0.1     # online: rebuild the basis when more of a frame's tra
 MIN_OBSERVED = 2          # a track is reconstructed once seen (visible) in this many frames
 MIN_SEEN = 0.7            # a batch's track is solved where seen in this share of its frames
 MIN_SEEN_TRACKS = 100     # min_seen applies where it keeps at least this many tracks
+SPVA_MIN_SEEN = 0.3       # spva's first batch: min_seen at most this (its prior term fills the
+#   tracks an occluder hides part of the time; those seen in fewer frames spoil its solve),
+#   except in a fragmented batch (_fragment_share): over the 48 sweep cases through the
+#   tracker spva / static median 1.055 -> 1.021, geometric mean 1.243 -> 1.157, the cap at
+#   60 deg 0.152 -> 0.078, the held-out tube at 60 deg 0.254 -> ~0.08; 0.5 / 0.7: the occluded
+#   face at 12 deg amplitude 2 0.068 -> 0.18 (BENCHMARKS, issue 13, session 48)
 FRAGMENTED_SHARE = 0.1    # _fragmented: a batch is halved where fewer of its tracks are seen in
 #   min_seen of its frames (the 60 deg occluded cap 0.2%, a tube's far side 0.3-2.4%; the
 #   other face / cap batches 100%): the cap 0.297 -> 0.204, the tube at 60 deg
@@ -631,12 +637,19 @@ class StreamNRSfM:
         ``MIN_SEEN_TRACKS`` remain (``tracks_left_out`` counts them), in modes ``batch`` and
         ``dspr`` (whose frames after the prior leave the same ids out: taken at their
         neighbours' depth as new tracks they cost the periodic cap 0.043 -> 0.050; left out,
-        0.032); ``spva``'s prior term fills what an occluder hides."""
+        0.032); in ``spva`` (its prior term fills what an occluder hides) at most
+        ``SPVA_MIN_SEEN`` of them, and none left out of a fragmented batch."""
         ids, W, V = self._tracks(frames) if tracks is None else tracks
         self.tracks_left_out, self._left_out = 0, np.empty(0, ids.dtype)
-        if self.mode not in ('batch', 'dspr') or self.min_seen <= 0:
+        share = self.min_seen
+        if self.mode == 'spva':
+            share = min(share, SPVA_MIN_SEEN) if self._fragment_share(frames, V) >= \
+                FRAGMENTED_SHARE else 0.0
+        elif self.mode not in ('batch', 'dspr'):
+            share = 0.0
+        if share <= 0:
             return ids, W, V
-        often = (V >= 0.5).sum(axis=0) >= self.min_seen * (V > 0).sum(axis=0)
+        often = (V >= 0.5).sum(axis=0) >= share * (V > 0).sum(axis=0)
         if often.all() or often.sum() < MIN_SEEN_TRACKS:
             return ids, W, V
         self.tracks_left_out = int((~often).sum())
@@ -660,6 +673,13 @@ class StreamNRSfM:
             self._known = sorted_unique(np.concatenate([f.ids for f in frames]))
         return out
 
+    def _fragment_share(self, frames: list[_Frame], V: np.ndarray) -> float:
+        """The share of the batch's tracks seen in ``min_seen`` of its frames (1 where
+        ``min_seen`` is 0 or the batch is too short to halve: not fragmented)."""
+        if len(frames) < 2 * MIN_PART_FRAMES or self.min_seen <= 0 or not V.shape[1]:
+            return 1.0
+        return float(((V >= 0.5).sum(axis=0) >= self.min_seen * V.shape[0]).mean())
+
     def _fragmented(self, frames: list[_Frame], V: np.ndarray) -> bool:
         """A ``batch`` (or ``dspr``'s first) whose tracks are each seen in few of its frames
         (under ``FRAGMENTED_SHARE`` of them in ``min_seen`` of the batch's frames: a surface whose
@@ -667,11 +687,8 @@ class StreamNRSfM:
         enough to halve into parts of at least ``MIN_PART_FRAMES``: one factorisation of it
         is ill-posed (the 60 deg occluded cap: rigid's cameras turn 133 deg where the truth's
         turn 74).  ``V``: the visibility of the frames' tracks (``_tracks``)."""
-        if self.mode not in ('batch', 'dspr') or len(frames) < 2 * MIN_PART_FRAMES or \
-                self.min_seen <= 0:
-            return False
-        often = (V >= 0.5).sum(axis=0) >= self.min_seen * V.shape[0]
-        return bool(V.shape[1]) and float(often.mean()) < FRAGMENTED_SHARE
+        return self.mode in ('batch', 'dspr') and \
+            self._fragment_share(frames, V) < FRAGMENTED_SHARE
 
     def _solve_batch(self, frames: list[_Frame], spva: bool = False) -> list[StreamShape]:
         tracks = self._tracks(frames)
@@ -1024,7 +1041,7 @@ class StreamNRSfM:
         depth, but for those the prior's batch left out (``min_seen``); the flat shape
         (recorded in ``fallbacks``) when too few prior tracks are seen."""
         assert self.prior is not None
-        if self._left_out.size:                # dspr (spva's first batch leaves none out)
+        if self._left_out.size:                # what the first batch left out (min_seen)
             k = ~_lookup(self._left_out, fr.ids)[1]
             fr = _Frame(fr.index, fr.ids[k], fr.uv[k], fr.vis[k])
         pids = self._prior_ids
