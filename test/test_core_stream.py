@@ -13,6 +13,7 @@ from nrsfm_ros.core.nrsfm.result import NRSfMResult
 from nrsfm_ros.core.nrsfm.stream import StreamNRSfM
 from nrsfm_ros.evaluation import stream_on_tracks
 from nrsfm_ros.io.synth import dense_tracks
+from tests_helpers import quarters
 
 
 @pytest.fixture(scope='module')
@@ -566,16 +567,6 @@ def test_online_keeps_its_basis_past_tracks_its_window_left_out(face, monkeypatc
     assert all(np.isin(sh.ids, ids).all() for sh in got)
 
 
-def _quarters(F: int, P: int) -> np.ndarray:
-    """Visibility (F, P) of a fragmented batch: tracks q::4 seen in quarter q of the F frames,
-    the quarters overlapping by a frame."""
-    V = np.zeros((F, P))
-    q4 = F // 4
-    for q in range(4):
-        V[max(0, q4 * q - 1):q4 * q + q4 + 1, q::4] = 1.0
-    return V
-
-
 def test_a_fragmented_batch_is_solved_in_halves_and_loses_no_frame(face):
     """A batch whose tracks are each seen in few of its frames (the visible side turning away:
     here each track is seen in one quarter of the batch, the quarters overlapping by a frame) is
@@ -584,7 +575,7 @@ def test_a_fragmented_batch_is_solved_in_halves_and_loses_no_frame(face):
     from nrsfm_ros.core.nrsfm import stream as st
     d, ids = face
     F = 24
-    V = _quarters(F, ids.size)
+    V = quarters(F, ids.size)
     s = StreamNRSfM(mode='batch', batch_frames=F)
     got = []
     for f in range(F):
@@ -604,7 +595,7 @@ def test_dspr_builds_its_prior_from_the_last_half_of_a_fragmented_first_batch(fa
     are each published once, in order, through the prior."""
     d, ids = face
     F, extra = 24, 6
-    V = np.r_[_quarters(F, ids.size), np.zeros((extra, ids.size))]
+    V = np.r_[quarters(F, ids.size), np.zeros((extra, ids.size))]
     V[F:, 3::4] = 1.0                                    # later frames: the last quarter's
     s = StreamNRSfM(mode='dspr', batch_frames=F)
     got = []

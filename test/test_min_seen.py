@@ -11,6 +11,7 @@ from nrsfm_ros.core.metrics import score_stream
 from nrsfm_ros.core.nrsfm.stream import MIN_SEEN_TRACKS, StreamNRSfM
 from nrsfm_ros.io.synth import dense_tracks
 from nrsfm_ros.params import ReconstructorParams
+from tests_helpers import quarters
 
 F, P, Q = 30, 300, 200          # frames, surface tracks, background tracks
 
@@ -81,10 +82,7 @@ def test_spva_leaves_out_only_the_rarely_seen_tracks_and_none_of_a_fragmented_ba
     e = score_stream(clouds, ids[:P], S).summary()['e3d']
     e0 = score_stream(clouds0, ids[:P], S).summary()['e3d']
     assert e < 0.8 * e0, (e, e0)
-    Vq = np.zeros_like(V)
-    for q in range(4):                              # tracks q::4 seen in quarter q
-        Vq[max(0, 7 * q - 1):7 * q + 9, q::4] = 1.0
-    sq, _ = _run(W, Vq, ids, mode='spva')
+    sq, _ = _run(W, quarters(F, V.shape[1]), ids, mode='spva')   # tracks q::4 in quarter q
     assert sq.tracks_left_out == 0
 
 

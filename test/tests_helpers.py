@@ -56,3 +56,13 @@ def bench_module(monkeypatch, name: str):
     from pathlib import Path
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / 'bench'))
     return importlib.import_module(name)
+
+
+def quarters(F: int, P: int) -> np.ndarray:
+    """Visibility (F, P) of a fragmented batch: tracks q::4 seen in quarter q of the F frames,
+    the quarters overlapping by a frame."""
+    V = np.zeros((F, P))
+    q4 = F // 4
+    for q in range(4):
+        V[max(0, q4 * q - 1):q4 * q + q4 + 1, q::4] = 1.0
+    return V

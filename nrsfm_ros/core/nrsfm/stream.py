@@ -692,12 +692,13 @@ class StreamNRSfM:
 
     def _solve_batch(self, frames: list[_Frame], spva: bool = False) -> list[StreamShape]:
         tracks = self._tracks(frames)
-        if not spva and self._fragmented(frames, tracks[2]):
+        if self._fragmented(frames, tracks[2]):
             # solved as two halves in turn, each published (and so each in the stream's gauge)
             # before the next: each half's tracks are seen in more of its frames; dspr's prior
-            # then comes from the last half (the tracks later frames still see).  Not spva's
-            # (all tracks, its prior term filling the rest): the held-out tube at 60 deg
-            # behind the occluder 0.162 -> 0.274 (BENCHMARKS, issue 13, session 48)
+            # then comes from the last half (the tracks later frames still see).  Not spva
+            # (_fragmented: batch and dspr only; its prior rebuilt from the last half, the
+            # held-out tube at 60 deg behind the occluder 0.162 -> 0.274: BENCHMARKS, issue 13,
+            # session 48)
             half = len(frames) // 2
             self.batch_splits += 1
             return self._solve_batch(frames[:half]) + self._solve_batch(frames[half:])
