@@ -102,7 +102,7 @@ RANGE_AGREEMENT = 0.75    # ... so where the rigid factorisation's cameras turn 
 #   0.0497), ground-truth tracks 0.0826 -> 0.0248, no other case changed (BENCHMARKS issue 12,
 #   session 43, at 0.9).  The tracker's faces there at 0.94-1.06 of bmm's rotation on session
 #   43's machine, 0.84 / 0.77 on session 49's (bmm kept at 0.9: 3.19x / 2.00x static; at 0.75
-#   0.78x / 0.91x); the caps at 0.42-0.72 on both (session 49)
+#   0.78x / 0.91x); the caps at 0.42-0.72 there, 0.17-0.63 here (session 49)
 BMM_LAM = 4.0            # bmm's lam (its own default) for batches up to BMM_LAM_FRAMES frames
 BMM_LAM_FRAMES = 60       # longer batches scale it by sqrt(frames / BMM_LAM_FRAMES): the
 #   tracker's errors are smooth in time, low rank as the deformation is, and their singular
